@@ -1,0 +1,1 @@
+//! Closed-form configuration factors: the validation catalogue.

@@ -1,0 +1,112 @@
+//! Form factors: the [`Estimator`] trait and the parallel row driver.
+//!
+//! The form factor from patch i to patch j (radiosidade.md, "Fator de Forma"; Cohen and
+//! Wallace 1993, eq. 4.13) is
+//!
+//! `F_ij = 1/A_i ∫_{A_i} ∫_{A_j} cos(θ_x) cos(θ_y) V(x, y) / (π r²) dA_y dA_x`.
+//!
+//! The driver owns the loop (pbrt-v4 and Mitsuba 3 keep the parallel loop out of the
+//! integrator): rows run in parallel with rayon, and an estimator only answers "row i".
+//! Estimators that sample each unordered pair once, symmetrically, declare
+//! [`Estimator::upper_only`]; the driver then asks only for `j > i` and fills the lower
+//! triangle by reciprocity (`A_j F_ji = A_i F_ij`), which halves the rays and makes the
+//! matrix reciprocal by construction.
+
+pub mod area;
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use crate::matrix::FormFactors;
+use crate::mesh::PatchSet;
+use crate::visibility::Visibility;
+
+pub use area::{AreaMc, Pattern};
+
+/// Everything an estimator may read while computing a row.
+pub struct Context<'a> {
+    /// The patches.
+    pub patches: &'a PatchSet,
+    /// Visibility queries over the same patches.
+    pub vis: &'a Visibility,
+    /// Seed of all random streams.
+    pub seed: u64,
+}
+
+/// One estimated entry of a row: `F_ij` and its standard error.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Entry {
+    /// Column (receiving patch).
+    pub j: u32,
+    /// Estimated form factor.
+    pub f: f64,
+    /// Standard error of the estimate (0 when exact).
+    pub se: f64,
+}
+
+/// A row being computed, reused between rows on the same thread.
+#[derive(Clone, Debug, Default)]
+pub struct Row {
+    /// Non-zero entries (any order).
+    pub entries: Vec<Entry>,
+    /// Rays cast for this row.
+    pub rays: u64,
+}
+
+/// A way of estimating one row of the form-factor matrix.
+pub trait Estimator: Sync {
+    /// Short name, used in reports and file provenance.
+    fn name(&self) -> String;
+    /// True when the estimator samples unordered pairs symmetrically: the driver asks for
+    /// `j > i` only and mirrors by reciprocity.
+    fn upper_only(&self) -> bool {
+        false
+    }
+    /// Computes row `i` (only `j > i` when [`Estimator::upper_only`]) into `row`, which
+    /// arrives cleared.
+    fn row(&self, ctx: &Context, i: usize, row: &mut Row);
+}
+
+/// Computes the whole matrix with `est`, calling `progress(rows_done)` now and then.
+pub fn compute(
+    ctx: &Context,
+    est: &dyn Estimator,
+    progress: &(dyn Fn(u64) + Sync),
+) -> FormFactors {
+    let start = Instant::now();
+    let n = ctx.patches.len();
+    let done = AtomicU64::new(0);
+    let rows: Vec<Row> = (0..n)
+        .into_par_iter()
+        .with_min_len(1)
+        .map(|i| {
+            let mut row = Row::default();
+            est.row(ctx, i, &mut row);
+            let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+            if d % 64 == 0 || d == n as u64 {
+                progress(d);
+            }
+            row
+        })
+        .collect();
+    let seconds = start.elapsed().as_secs_f64();
+    let rays = rows.iter().map(|r| r.rays).sum();
+    let area = &ctx.patches.area;
+    let mut triplets: Vec<Vec<Entry>> = rows.into_iter().map(|r| r.entries).collect();
+    if est.upper_only() {
+        let mut mirrored: Vec<Vec<Entry>> = vec![Vec::new(); n];
+        for (i, row) in triplets.iter().enumerate() {
+            for e in row {
+                let j = e.j as usize;
+                let s = area[i] / area[j];
+                mirrored[j].push(Entry { j: i as u32, f: e.f * s, se: e.se * s });
+            }
+        }
+        for (row, extra) in triplets.iter_mut().zip(mirrored) {
+            row.extend(extra);
+        }
+    }
+    FormFactors::from_rows(triplets, area.clone(), rays, seconds, est.name(), ctx.seed)
+}

@@ -1,0 +1,336 @@
+//! Patches: the scene's faces subdivided into small planar polygons.
+//!
+//! A patch is a handle ([`PatchId`], an index) into the flat arrays of a [`PatchSet`]:
+//! corners, area, normal, centroid, material (the pbrt-v4 layout: no object owns geometry).
+//! Quads are split into an `nu x nv` grid of quads and triangles into `n^2` similar
+//! triangles, with `nu`, `nv`, `n` chosen so that no patch edge is longer than the target
+//! length; a target patch count is turned into that length by a short search.
+//!
+//! The patch triangles are also what the visibility module traces against, so a ray hit
+//! maps straight back to its patch through [`PatchSet::tri_patch`].
+
+use glam::{DVec3, Vec3};
+
+use crate::error::{Error, Result};
+use crate::scene::{Face, Material, Scene};
+
+/// Index of a patch in a [`PatchSet`].
+pub type PatchId = u32;
+
+/// Marks the missing 4th corner of a triangular patch.
+pub const NONE: u32 = u32::MAX;
+
+/// How finely to subdivide.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Resolution {
+    /// No patch edge longer than this (scene units).
+    MaxEdge(f64),
+    /// About this many patches in all.
+    Patches(usize),
+}
+
+/// The patches of a scene, as flat arrays indexed by [`PatchId`].
+#[derive(Clone, Debug, Default)]
+pub struct PatchSet {
+    /// Scene name, for messages and file headers.
+    pub scene: String,
+    /// Vertices of the patch mesh (shared within a face).
+    pub vertices: Vec<Vec3>,
+    /// Corner indices into `vertices`, counter-clockwise seen from the front;
+    /// the 4th is [`NONE`] for triangles.
+    pub corners: Vec<[u32; 4]>,
+    /// Area of each patch.
+    pub area: Vec<f64>,
+    /// Unit normal of each patch (the side that emits and receives).
+    pub normal: Vec<Vec3>,
+    /// Centroid of each patch.
+    pub centroid: Vec<Vec3>,
+    /// Material index of each patch.
+    pub material: Vec<u32>,
+    /// Index of the scene face each patch came from.
+    pub face: Vec<u32>,
+    /// Materials (copied from the scene).
+    pub materials: Vec<Material>,
+    /// Patch triangles (one or two per patch), for visibility and output.
+    pub triangles: Vec<[u32; 3]>,
+    /// Patch of each triangle.
+    pub tri_patch: Vec<u32>,
+    /// Length of the diagonal of the scene's bounding box (sets ray offsets).
+    pub diagonal: f64,
+    /// The edge length the subdivision used.
+    pub max_edge: f64,
+}
+
+impl PatchSet {
+    /// Number of patches.
+    pub fn len(&self) -> usize {
+        self.area.len()
+    }
+
+    /// True when there are no patches.
+    pub fn is_empty(&self) -> bool {
+        self.area.is_empty()
+    }
+
+    /// Reflectance of patch `i`.
+    pub fn rho(&self, i: usize) -> [f64; 3] {
+        self.materials[self.material[i] as usize].rho
+    }
+
+    /// Emission of patch `i`.
+    pub fn emit(&self, i: usize) -> [f64; 3] {
+        self.materials[self.material[i] as usize].emit
+    }
+
+    /// Corner positions of patch `i` (3 or 4).
+    pub fn corner_points(&self, i: usize) -> ([Vec3; 4], usize) {
+        let c = self.corners[i];
+        let n = if c[3] == NONE { 3 } else { 4 };
+        let mut p = [Vec3::ZERO; 4];
+        for k in 0..n {
+            p[k] = self.vertices[c[k] as usize];
+        }
+        (p, n)
+    }
+
+    /// Maps `(u, v)` in the unit square to a point of patch `i`, uniformly by area:
+    /// triangles by the square-root warp (Shirley and Chiu 1997; pbrt-v4
+    /// `SampleUniformTriangle`), parallelograms bilinearly, other quads by picking one of
+    /// their two triangles with probability proportional to its area (on `u`).
+    #[inline]
+    pub fn sample_point(&self, i: usize, u: f64, v: f64) -> Vec3 {
+        let (p, n) = self.corner_points(i);
+        if n == 3 {
+            return sample_triangle(p[0], p[1], p[2], u, v);
+        }
+        let skew = p[0] + p[2] - p[1] - p[3];
+        if skew.length_squared() <= 1e-12 * (p[2] - p[0]).length_squared() {
+            let (u, v) = (u as f32, v as f32);
+            return p[0] + (p[1] - p[0]) * u + (p[3] - p[0]) * v;
+        }
+        let a1 = (p[1] - p[0]).cross(p[2] - p[0]).length() as f64;
+        let a2 = (p[2] - p[0]).cross(p[3] - p[0]).length() as f64;
+        let w = a1 / (a1 + a2);
+        if u < w {
+            sample_triangle(p[0], p[1], p[2], u / w, v)
+        } else {
+            sample_triangle(p[0], p[2], p[3], ((u - w) / (1.0 - w)).min(1.0), v)
+        }
+    }
+
+    /// Builds the patches of `scene` at the given resolution.
+    pub fn build(scene: &Scene, res: Resolution) -> Result<PatchSet> {
+        let (lo, hi) = scene.bounds();
+        let diagonal = (hi - lo).as_dvec3().length();
+        if !(diagonal > 0.0) || !diagonal.is_finite() {
+            return Err(Error::Scene {
+                scene: scene.source.clone(),
+                msg: "the scene has no extent (all vertices coincide)".into(),
+            });
+        }
+        let max_edge = match res {
+            Resolution::MaxEdge(h) if h > 0.0 && h.is_finite() => h,
+            Resolution::MaxEdge(h) => {
+                return Err(Error::Config(format!("patch edge length must be > 0, got {h}")))
+            }
+            Resolution::Patches(0) => {
+                return Err(Error::Config("patch count must be at least 1".into()))
+            }
+            Resolution::Patches(n) => edge_for_count(scene, n),
+        };
+        let mut set = PatchSet {
+            scene: scene.name.clone(),
+            materials: scene.materials.clone(),
+            diagonal,
+            max_edge,
+            ..Default::default()
+        };
+        for (fi, face) in scene.faces.iter().enumerate() {
+            set.add_face(scene, fi as u32, face, max_edge);
+        }
+        if set.len() > (u32::MAX / 4) as usize {
+            return Err(Error::Config(format!("{} patches are too many", set.len())));
+        }
+        Ok(set)
+    }
+
+    fn add_face(&mut self, scene: &Scene, fi: u32, face: &Face, h: f64) {
+        let p: Vec<DVec3> =
+            face.corner_slice().iter().map(|&c| scene.positions[c as usize].as_dvec3()).collect();
+        let base = self.vertices.len() as u32;
+        if p.len() == 4 {
+            let nu = cells(p[1] - p[0], h).max(cells(p[2] - p[3], h));
+            let nv = cells(p[3] - p[0], h).max(cells(p[2] - p[1], h));
+            for b in 0..=nv {
+                let t = b as f64 / nv as f64;
+                for a in 0..=nu {
+                    let s = a as f64 / nu as f64;
+                    let q = p[0] * ((1.0 - s) * (1.0 - t))
+                        + p[1] * (s * (1.0 - t))
+                        + p[2] * (s * t)
+                        + p[3] * ((1.0 - s) * t);
+                    self.vertices.push(q.as_vec3());
+                }
+            }
+            let at = |a: usize, b: usize| base + (b * (nu + 1) + a) as u32;
+            for b in 0..nv {
+                for a in 0..nu {
+                    let c = [at(a, b), at(a + 1, b), at(a + 1, b + 1), at(a, b + 1)];
+                    self.push_patch(c, face.material, fi);
+                }
+            }
+        } else {
+            let n = cells(p[1] - p[0], h).max(cells(p[2] - p[1], h)).max(cells(p[0] - p[2], h));
+            // Row r has n - r + 1 vertices: P = p0 + (p1 - p0) a/n + (p2 - p0) r/n.
+            let mut row_start = Vec::with_capacity(n + 1);
+            for r in 0..=n {
+                row_start.push(self.vertices.len() as u32);
+                for a in 0..=(n - r) {
+                    let q = p[0]
+                        + (p[1] - p[0]) * (a as f64 / n as f64)
+                        + (p[2] - p[0]) * (r as f64 / n as f64);
+                    self.vertices.push(q.as_vec3());
+                }
+            }
+            for r in 0..n {
+                for a in 0..(n - r) {
+                    let (v0, v1) = (row_start[r] + a as u32, row_start[r] + a as u32 + 1);
+                    let v2 = row_start[r + 1] + a as u32;
+                    self.push_patch([v0, v1, v2, NONE], face.material, fi);
+                    if a + 1 < n - r {
+                        let v3 = row_start[r + 1] + a as u32 + 1;
+                        self.push_patch([v1, v3, v2, NONE], face.material, fi);
+                    }
+                }
+            }
+        }
+    }
+
+    fn push_patch(&mut self, c: [u32; 4], material: u32, face: u32) {
+        let n = if c[3] == NONE { 3 } else { 4 };
+        let pts: Vec<DVec3> = c[..n].iter().map(|&k| self.vertices[k as usize].as_dvec3()).collect();
+        let mut newell = DVec3::ZERO;
+        let mut centroid = DVec3::ZERO;
+        let mut area_sum = 0.0;
+        for k in 1..n - 1 {
+            let cr = (pts[k] - pts[0]).cross(pts[k + 1] - pts[0]);
+            newell += cr;
+            let a = cr.length() * 0.5;
+            centroid += (pts[0] + pts[k] + pts[k + 1]) / 3.0 * a;
+            area_sum += a;
+        }
+        let id = self.area.len() as u32;
+        self.corners.push(c);
+        self.area.push(newell.length() * 0.5);
+        self.normal.push(newell.normalize_or_zero().as_vec3());
+        self.centroid.push((centroid / area_sum.max(f64::MIN_POSITIVE)).as_vec3());
+        self.material.push(material);
+        self.face.push(face);
+        self.triangles.push([c[0], c[1], c[2]]);
+        self.tri_patch.push(id);
+        if n == 4 {
+            self.triangles.push([c[0], c[2], c[3]]);
+            self.tri_patch.push(id);
+        }
+    }
+
+    /// Checks every patch for finite, non-degenerate geometry; names the first bad patch.
+    pub fn validate(&self) -> Result<()> {
+        for i in 0..self.len() {
+            let a = self.area[i];
+            if !a.is_finite() || a <= 0.0 || !self.normal[i].is_finite() {
+                return Err(Error::Scene {
+                    scene: self.scene.clone(),
+                    msg: format!(
+                        "patch {i} (face {}) is degenerate: area {a:e}, normal {:?}",
+                        self.face[i], self.normal[i]
+                    ),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Number of segments of length at most `h` along `edge`.
+fn cells(edge: DVec3, h: f64) -> usize {
+    ((edge.length() / h).ceil() as usize).clamp(1, 1 << 16)
+}
+
+/// Uniform point on triangle (a, b, c) from (u, v) in the unit square.
+#[inline]
+fn sample_triangle(a: Vec3, b: Vec3, c: Vec3, u: f64, v: f64) -> Vec3 {
+    let su = u.sqrt();
+    let (b0, b1) = ((1.0 - su) as f32, (v * su) as f32);
+    a * b0 + b * (1.0 - b0 - b1) + c * b1
+}
+
+/// Finds the edge length that gives about `n` patches (within a few percent).
+fn edge_for_count(scene: &Scene, n: usize) -> f64 {
+    let count = |h: f64| -> usize {
+        scene
+            .faces
+            .iter()
+            .map(|f| {
+                let p: Vec<DVec3> =
+                    f.corner_slice().iter().map(|&c| scene.positions[c as usize].as_dvec3()).collect();
+                if p.len() == 4 {
+                    cells(p[1] - p[0], h).max(cells(p[2] - p[3], h))
+                        * cells(p[3] - p[0], h).max(cells(p[2] - p[1], h))
+                } else {
+                    let k = cells(p[1] - p[0], h).max(cells(p[2] - p[1], h)).max(cells(p[0] - p[2], h));
+                    k * k
+                }
+            })
+            .sum()
+    };
+    // The count falls as h grows: bisect on log h between "one patch per face" and tiny.
+    let (lo0, hi0) = scene.bounds();
+    let mut hi = (hi0 - lo0).as_dvec3().length() * 2.0;
+    let mut lo = hi * 1e-5;
+    for _ in 0..60 {
+        let mid = (lo * hi).sqrt();
+        if count(mid) > n {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    hi
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::builtin;
+
+    #[test]
+    fn areas_add_up() {
+        let scene = builtin::load("cornell").unwrap().unwrap();
+        let coarse = PatchSet::build(&scene, Resolution::MaxEdge(1e4)).unwrap();
+        let fine = PatchSet::build(&scene, Resolution::MaxEdge(40.0)).unwrap();
+        let (a, b): (f64, f64) = (coarse.area.iter().sum(), fine.area.iter().sum());
+        assert!((a - b).abs() < 1e-6 * a, "{a} vs {b}");
+        assert!(fine.len() > 500);
+        fine.validate().unwrap();
+    }
+
+    #[test]
+    fn patch_count_target_is_close() {
+        let scene = builtin::load("cornell").unwrap().unwrap();
+        let set = PatchSet::build(&scene, Resolution::Patches(1000)).unwrap();
+        assert!((900..=1100).contains(&set.len()), "{}", set.len());
+    }
+
+    #[test]
+    fn triangle_subdivision_covers_area() {
+        let mut scene = builtin::load("plates-parallel").unwrap().unwrap();
+        scene.faces.truncate(1);
+        let f = scene.faces[0];
+        scene.faces[0].corners = [f.corners[0], f.corners[1], f.corners[2], NONE];
+        let set = PatchSet::build(&scene, Resolution::MaxEdge(0.2)).unwrap();
+        let total: f64 = set.area.iter().sum();
+        assert!((total - 0.5).abs() < 1e-6);
+        assert_eq!(set.len(), 64); // n = ceil(sqrt(2) / 0.2) = 8 -> 64 triangles
+    }
+}

@@ -1,0 +1,1 @@
+//! Output: per-vertex radiosity, EXR, PLY and preview images.

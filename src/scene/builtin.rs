@@ -1,0 +1,60 @@
+//! Built-in scenes, embedded from the `scenes/` folder so that they work from any
+//! directory: `cornell`, `plates-perpendicular`, `plates-parallel`, `cube`, `shelf`.
+
+use std::path::{Path, PathBuf};
+
+use super::{obj, Scene};
+use crate::error::{Error, Result};
+
+/// Names of the built-in scenes.
+pub const NAMES: &[&str] = &["cornell", "plates-perpendicular", "plates-parallel", "cube", "shelf"];
+
+/// OBJ text and the MTL files it may reference, per built-in scene.
+fn files(name: &str) -> Option<(&'static str, &'static [(&'static str, &'static str)])> {
+    const CORNELL_MTL: &[(&str, &str)] =
+        &[("cornell.mtl", include_str!("../../scenes/cornell.mtl"))];
+    const PLATES_MTL: &[(&str, &str)] = &[("plates.mtl", include_str!("../../scenes/plates.mtl"))];
+    const CUBE_MTL: &[(&str, &str)] = &[("cube.mtl", include_str!("../../scenes/cube.mtl"))];
+    const SHELF_MTL: &[(&str, &str)] = &[("shelf.mtl", include_str!("../../scenes/shelf.mtl"))];
+    Some(match name {
+        "cornell" => (include_str!("../../scenes/cornell.obj"), CORNELL_MTL),
+        "plates-perpendicular" => {
+            (include_str!("../../scenes/plates-perpendicular.obj"), PLATES_MTL)
+        }
+        "plates-parallel" => (include_str!("../../scenes/plates-parallel.obj"), PLATES_MTL),
+        "cube" => (include_str!("../../scenes/cube.obj"), CUBE_MTL),
+        "shelf" => (include_str!("../../scenes/shelf.obj"), SHELF_MTL),
+        _ => return None,
+    })
+}
+
+/// The built-in scene `name`, or `None` when there is no such built-in scene.
+pub fn load(name: &str) -> Result<Option<Scene>> {
+    let Some((obj_text, mtls)) = files(name) else { return Ok(None) };
+    let label = PathBuf::from(format!("scenes/{name}.obj"));
+    let mut scene = obj::parse(name, &label, obj_text, &|lib: &str| {
+        mtls.iter()
+            .find(|(n, _)| *n == lib)
+            .map(|(n, t)| (Path::new("scenes").join(n), t.to_string()))
+            .ok_or_else(|| Error::Parse {
+                path: label.clone(),
+                line: None,
+                msg: format!("built-in scene refers to unknown mtllib `{lib}`"),
+            })
+    })?;
+    scene.source = format!("builtin:{name}");
+    Ok(Some(scene))
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn all_builtins_load() {
+        for name in super::NAMES {
+            let s = super::load(name).unwrap().unwrap();
+            assert!(!s.faces.is_empty(), "{name}");
+            assert!(s.warnings.is_empty(), "{name}: {:?}", s.warnings);
+            s.require_emitter().unwrap();
+        }
+    }
+}

@@ -1,0 +1,210 @@
+//! Scenes: polygons with diffuse materials, as loaded from OBJ/MTL or built in.
+//!
+//! A [`Scene`] is what the user described, cleaned: planar convex polygons of 3 or 4
+//! vertices (larger or non-planar polygons are split into triangles), each with a
+//! [`Material`] holding the RGB reflectance `rho` (MTL `Kd`, each channel in [0, 1)) and the
+//! RGB emission `emit` (MTL `Ke`, exitance units, >= 0). Nothing here knows about patches
+//! or rays: the `mesh` module turns a scene into patches.
+
+pub mod builtin;
+pub mod obj;
+
+use glam::Vec3;
+
+use crate::error::{Error, Result};
+
+/// A diffuse material: reflectance and emitted exitance per RGB channel.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Material {
+    /// Name from the MTL file.
+    pub name: String,
+    /// Reflectance per channel, in [0, 1).
+    pub rho: [f64; 3],
+    /// Emitted exitance per channel (radiosity units), >= 0.
+    pub emit: [f64; 3],
+}
+
+impl Material {
+    /// True when the material emits in any channel.
+    pub fn is_emitter(&self) -> bool {
+        self.emit.iter().any(|&e| e > 0.0)
+    }
+
+    /// Checks the physical ranges: `rho` in [0, 1) and finite non-negative `emit`.
+    /// Returns what is wrong, for the caller to wrap with the file and line.
+    pub fn validate(&self) -> std::result::Result<(), String> {
+        for (c, &r) in self.rho.iter().enumerate() {
+            if !r.is_finite() || !(0.0..1.0).contains(&r) {
+                return Err(format!(
+                    "reflectance Kd channel {} is {r}, outside [0, 1) (rho = 1 conserves all \
+                     light and makes a closed scene singular)",
+                    ["R", "G", "B"][c]
+                ));
+            }
+        }
+        for (c, &e) in self.emit.iter().enumerate() {
+            if !e.is_finite() || e < 0.0 {
+                return Err(format!(
+                    "emission Ke channel {} is {e}, must be finite and >= 0",
+                    ["R", "G", "B"][c]
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A planar convex polygon of the scene (3 or 4 corners).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Face {
+    /// Indices into [`Scene::positions`]; the 4th is [`Face::NONE`] for a triangle.
+    pub corners: [u32; 4],
+    /// Index into [`Scene::materials`].
+    pub material: u32,
+    /// 1-based line of the OBJ file that defined the face (0 when generated).
+    pub line: u32,
+}
+
+impl Face {
+    /// Marks the missing 4th corner of a triangle.
+    pub const NONE: u32 = u32::MAX;
+
+    /// Number of corners (3 or 4).
+    pub fn len(&self) -> usize {
+        if self.corners[3] == Self::NONE {
+            3
+        } else {
+            4
+        }
+    }
+
+    /// Always false: a face has at least three corners.
+    pub fn is_empty(&self) -> bool {
+        false
+    }
+
+    /// The corner indices actually used.
+    pub fn corner_slice(&self) -> &[u32] {
+        &self.corners[..self.len()]
+    }
+}
+
+/// A pinhole camera for previews.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Camera {
+    /// Eye position.
+    pub eye: Vec3,
+    /// Point looked at.
+    pub target: Vec3,
+    /// Up direction.
+    pub up: Vec3,
+    /// Vertical field of view in degrees.
+    pub vfov_deg: f32,
+}
+
+impl Camera {
+    /// A camera that frames an axis-aligned box, looking along -z from in front of it
+    /// (or along the box's thinnest axis when that is clearer).
+    pub fn framing(lo: Vec3, hi: Vec3) -> Camera {
+        let center = (lo + hi) * 0.5;
+        let ext = (hi - lo).max(Vec3::splat(1e-6));
+        let vfov_deg = 40.0f32;
+        let radius = ext.length() * 0.5;
+        let dist = radius / (vfov_deg.to_radians() * 0.5).tan() * 1.05;
+        // Look from a direction slightly above and to the side, so that boxes show depth.
+        let dir = Vec3::new(0.35, 0.45, 1.0).normalize();
+        Camera { eye: center + dir * dist, target: center, up: Vec3::Y, vfov_deg }
+    }
+}
+
+/// A scene: positions, faces and materials, plus an optional preview camera.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    /// Name: the built-in name, or the file stem.
+    pub name: String,
+    /// Where it came from: `builtin:NAME` or the file path.
+    pub source: String,
+    /// Vertex positions.
+    pub positions: Vec<Vec3>,
+    /// Planar convex polygons.
+    pub faces: Vec<Face>,
+    /// Materials referenced by the faces.
+    pub materials: Vec<Material>,
+    /// Preview camera (from a `#@camera` line), if the scene carries one.
+    pub camera: Option<Camera>,
+    /// Things the loader repaired or dropped (degenerate faces...), for the summary.
+    pub warnings: Vec<String>,
+}
+
+impl Scene {
+    /// Axis-aligned bounds of the positions used by faces.
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        let mut lo = Vec3::splat(f32::INFINITY);
+        let mut hi = Vec3::splat(f32::NEG_INFINITY);
+        for f in &self.faces {
+            for &c in f.corner_slice() {
+                let p = self.positions[c as usize];
+                lo = lo.min(p);
+                hi = hi.max(p);
+            }
+        }
+        (lo, hi)
+    }
+
+    /// The preview camera: the scene's own, or one framing its bounds.
+    pub fn camera_or_framing(&self) -> Camera {
+        self.camera.unwrap_or_else(|| {
+            let (lo, hi) = self.bounds();
+            Camera::framing(lo, hi)
+        })
+    }
+
+    /// Errors unless some face has an emitting material.
+    pub fn require_emitter(&self) -> Result<()> {
+        let lit = self.faces.iter().any(|f| self.materials[f.material as usize].is_emitter());
+        if lit {
+            Ok(())
+        } else {
+            Err(Error::Scene {
+                scene: self.source.clone(),
+                msg: "no emitter: no face has a material with Ke > 0, so every radiosity \
+                      would be 0"
+                    .into(),
+            })
+        }
+    }
+
+    /// Index of the material named `name`.
+    pub fn material_index(&self, name: &str) -> Option<usize> {
+        self.materials.iter().position(|m| m.name == name)
+    }
+
+    /// Sets reflectance and emission of the material named `name`, checking the ranges.
+    pub fn set_material(&mut self, name: &str, rho: [f64; 3], emit: [f64; 3]) -> Result<()> {
+        let k = self.material_index(name).ok_or_else(|| Error::Scene {
+            scene: self.source.clone(),
+            msg: format!("no material named `{name}`"),
+        })?;
+        let m = Material { name: name.to_string(), rho, emit };
+        m.validate().map_err(|msg| Error::Material {
+            path: self.source.clone().into(),
+            line: None,
+            material: name.to_string(),
+            msg,
+        })?;
+        self.materials[k] = m;
+        Ok(())
+    }
+
+    /// Loads a scene by built-in name or by path to an OBJ file.
+    pub fn load(name_or_path: &str) -> Result<Scene> {
+        if let Some(scene) = builtin::load(name_or_path)? {
+            return Ok(scene);
+        }
+        let path = std::path::Path::new(name_or_path);
+        if path.exists() || name_or_path.contains('/') || name_or_path.ends_with(".obj") {
+            return obj::load_file(path);
+        }
+        Err(Error::UnknownScene { name: name_or_path.to_string(), known: builtin::NAMES.join(", ") })
+    }
+}

@@ -1,0 +1,1 @@
+//! Radiosity solvers for (I - diag(rho) F) B = E.

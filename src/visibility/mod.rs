@@ -1,0 +1,100 @@
+//! Visibility queries between points of the scene, hiding the ray tracer behind them.
+//!
+//! Estimators ask two questions: is the segment between two surface points free
+//! ([`Visibility::segment_visible`]), and what does a ray from a surface point hit first
+//! ([`Visibility::first_hit`]). The offset policy for both lives here, in one place:
+//! each end of a segment is moved off its surface along its own normal, toward the side
+//! the ray leaves or arrives from, by `eps` = 1e-5 of the scene diagonal, and the ray stops
+//! short of the far end (pbrt-v4 `SpawnRayTo`; Embree does not promise what happens for
+//! hits exactly at `tnear`/`tfar`). Because both ends sit on the front side of their
+//! patches, a segment never hits its own patches, and a point in a corner cannot leak
+//! through the wall it touches.
+
+mod embree;
+
+use glam::Vec3;
+
+use crate::error::Result;
+use crate::mesh::PatchSet;
+
+pub use embree::EmbreeScene;
+
+/// Relative offset of ray ends from their surfaces, as a fraction of the scene diagonal.
+pub const OFFSET_REL: f32 = 1e-5;
+
+/// What a ray hit first.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    /// The patch hit.
+    pub patch: u32,
+    /// Distance along the (unit) direction.
+    pub t: f32,
+}
+
+/// Visibility queries over the patch triangles of a [`PatchSet`].
+pub struct Visibility {
+    scene: EmbreeScene,
+    tri_patch: Vec<u32>,
+    eps: f32,
+}
+
+impl Visibility {
+    /// Builds the acceleration structure over the patches' triangles.
+    pub fn new(patches: &PatchSet) -> Result<Visibility> {
+        let scene = EmbreeScene::new(&patches.vertices, &patches.triangles)?;
+        let eps = (patches.diagonal as f32 * OFFSET_REL).max(f32::MIN_POSITIVE);
+        Ok(Visibility { scene, tri_patch: patches.tri_patch.clone(), eps })
+    }
+
+    /// The offset used for ray ends.
+    pub fn eps(&self) -> f32 {
+        self.eps
+    }
+
+    /// The underlying Embree scene (for benchmarks of raw queries).
+    pub fn raw(&self) -> &EmbreeScene {
+        &self.scene
+    }
+
+    /// The segment from `x` (on a surface with normal `n_x`) to `y` (normal `n_y`), both
+    /// ends offset by `eps` off their surfaces toward the other end, as a ray:
+    /// `(origin, direction, tfar)` with tnear = 0. Direction is not normalised.
+    #[inline]
+    pub fn segment_ray(&self, x: Vec3, n_x: Vec3, y: Vec3, n_y: Vec3) -> (Vec3, Vec3, f32) {
+        let d = y - x;
+        let ox = if n_x.dot(d) >= 0.0 { n_x } else { -n_x };
+        let oy = if n_y.dot(d) <= 0.0 { n_y } else { -n_y };
+        let org = x + ox * self.eps;
+        let end = y + oy * self.eps;
+        (org, end - org, 1.0 - 1e-4)
+    }
+
+    /// True when nothing blocks the segment between `x` and `y` (see the module docs).
+    #[inline]
+    pub fn segment_visible(&self, x: Vec3, n_x: Vec3, y: Vec3, n_y: Vec3) -> bool {
+        let (org, dir, tfar) = self.segment_ray(x, n_x, y, n_y);
+        !self.scene.occluded1(org, dir, 0.0, tfar)
+    }
+
+    /// Visibility of up to 16 segments at once, with Embree's packet query.
+    pub fn segments_visible16(&self, segs: &[(Vec3, Vec3, f32)], out: &mut [bool]) {
+        let mut rays = [(Vec3::ZERO, Vec3::ZERO, 0.0f32, 0.0f32); 16];
+        for (k, s) in segs.iter().enumerate() {
+            rays[k] = (s.0, s.1, 0.0, s.2);
+        }
+        self.scene.occluded16(&rays[..segs.len()], out);
+        for v in out[..segs.len()].iter_mut() {
+            *v = !*v;
+        }
+    }
+
+    /// First patch hit by the ray leaving `x` (normal `n_x`) in unit direction `dir`.
+    #[inline]
+    pub fn first_hit(&self, x: Vec3, n_x: Vec3, dir: Vec3) -> Option<Hit> {
+        let off = if n_x.dot(dir) >= 0.0 { n_x } else { -n_x };
+        let org = x + off * self.eps;
+        self.scene
+            .intersect1(org, dir, 0.0, f32::INFINITY)
+            .map(|h| Hit { patch: self.tri_patch[h.prim as usize], t: h.t })
+    }
+}
