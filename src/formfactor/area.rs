@@ -81,13 +81,28 @@ impl Estimator for AreaMc {
     }
 
     fn row(&self, ctx: &Context, a: usize, row: &mut Row) {
+        let vis = ctx.vis;
+        self.row_with(ctx, a, row, &mut |x, n_x, y, n_y| vis.segment_visible(x, n_x, y, n_y));
+    }
+}
+
+impl AreaMc {
+    /// Row `a` (pairs `b > a`) with `visible(x, n_x, y, n_y)` answering visibility; the
+    /// rays asked for do not depend on the answers, so a recorder sees the exact ray set.
+    pub fn row_with(
+        &self,
+        ctx: &Context,
+        a: usize,
+        row: &mut Row,
+        visible: &mut dyn FnMut(Vec3, Vec3, Vec3, Vec3) -> bool,
+    ) {
         let p = ctx.patches;
         let m = self.strata * self.strata;
         let reps = self.replicates.max(2);
         let mut xs = Vec::with_capacity(m);
         let mut ys = Vec::with_capacity(m);
         let mut means = vec![0.0f64; reps];
-        let (n_a, area_a) = (p.normal[a], p.area[a]);
+        let n_a = p.normal[a];
         for b in a + 1..p.len() {
             if behind(ctx, a, b) || behind(ctx, b, a) {
                 continue;
@@ -116,7 +131,7 @@ impl Estimator for AreaMc {
                     let y = p.sample_point(b, ys[k].0, ys[k].1);
                     if let Some(g) = kernel(x, n_a, y, n_b) {
                         row.rays += 1;
-                        if ctx.vis.segment_visible(x, n_a, y, n_b) {
+                        if visible(x, n_a, y, n_b) {
                             sum += g;
                         }
                     }
@@ -128,7 +143,6 @@ impl Estimator for AreaMc {
                 let var = means.iter().map(|v| (v - avg).powi(2)).sum::<f64>() / (reps - 1) as f64;
                 let se = (var / reps as f64).sqrt();
                 let area_b = p.area[b];
-                let _ = area_a;
                 row.entries.push(Entry { j: b as u32, f: avg * area_b, se: se * area_b });
             }
         }

@@ -1,0 +1,266 @@
+//! Argument syntax (clap) and its resolution into the library's configuration types.
+//! Nothing here computes: it parses, resolves, calls the pipeline and prints.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::sync::Mutex;
+
+use anyhow::{bail, Context as _, Result};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use radiosity::mesh::Resolution;
+use radiosity::output::Exposure;
+use radiosity::pipeline::{self, BakeConfig, EstimatorChoice, Observer};
+use radiosity::scene::builtin;
+use radiosity::solve::{Method, Options};
+
+#[derive(Parser, Debug)]
+#[command(name = "radiosity", version, about = "Monte Carlo radiosity form factors on Embree 4, solved and baked into OpenEXR")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Compute form factors, solve, and write radiosity.exr, mesh.ply and preview.png.
+    Bake(BakeArgs),
+    /// List the built-in scenes.
+    Scenes,
+}
+
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum EstimatorArg {
+    /// Exact point-to-polygon factor over emitter points, times ray-traced visibility.
+    Semi,
+    /// Area-to-area Monte Carlo, stratified point pairs.
+    Stratified,
+    /// Area-to-area Monte Carlo, independent uniform point pairs.
+    Uniform,
+}
+
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum SolverArg {
+    Jacobi,
+    GaussSeidel,
+    Progressive,
+}
+
+#[derive(Args, Debug)]
+struct MeshArgs {
+    /// Target number of patches (the edge length is chosen to get close to it).
+    #[arg(long, default_value_t = 1000, conflicts_with = "max_edge")]
+    patches: usize,
+    /// Subdivide so that no patch edge is longer than this (scene units).
+    #[arg(long)]
+    max_edge: Option<f64>,
+}
+
+impl MeshArgs {
+    fn resolution(&self) -> Result<Resolution> {
+        Ok(match self.max_edge {
+            Some(h) if h > 0.0 && h.is_finite() => Resolution::MaxEdge(h),
+            Some(h) => bail!("--max-edge must be a positive length, got {h}"),
+            None if self.patches == 0 => bail!("--patches must be at least 1"),
+            None => Resolution::Patches(self.patches),
+        })
+    }
+}
+
+#[derive(Args, Debug)]
+struct FactorArgs {
+    /// Form-factor estimator.
+    #[arg(long, value_enum, default_value_t = EstimatorArg::Semi)]
+    estimator: EstimatorArg,
+    /// Samples per side: emitter points per side (semi) or strata per side (area estimators).
+    #[arg(long, default_value_t = 4)]
+    samples: usize,
+    /// Visibility rays per emitter point (semi estimator).
+    #[arg(long, default_value_t = 16)]
+    rays: usize,
+    /// Independent replicates, for the standard errors (at least 2).
+    #[arg(long, default_value_t = 4)]
+    replicates: usize,
+    /// Seed of all random streams; results do not depend on the thread count.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+impl FactorArgs {
+    fn choice(&self) -> Result<EstimatorChoice> {
+        if self.samples == 0 || self.samples > 256 {
+            bail!("--samples must be between 1 and 256, got {}", self.samples);
+        }
+        if self.replicates < 2 {
+            bail!("--replicates must be at least 2 (standard errors need two), got {}", self.replicates);
+        }
+        if self.rays == 0 {
+            bail!("--rays must be at least 1");
+        }
+        Ok(match self.estimator {
+            EstimatorArg::Semi => EstimatorChoice::SemiAnalytic {
+                points: self.samples,
+                rays: self.rays,
+                replicates: self.replicates,
+            },
+            EstimatorArg::Stratified => {
+                EstimatorChoice::AreaStratified { strata: self.samples, replicates: self.replicates }
+            }
+            EstimatorArg::Uniform => {
+                EstimatorChoice::AreaUniform { strata: self.samples, replicates: self.replicates }
+            }
+        })
+    }
+
+    fn init_threads(&self) -> Result<()> {
+        if let Some(n) = self.threads {
+            if n == 0 {
+                bail!("--threads must be at least 1");
+            }
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build_global()
+                .context("cannot set the thread count")?;
+        }
+        Ok(())
+    }
+}
+
+#[derive(Args, Debug)]
+struct BakeArgs {
+    /// Built-in scene name or path to an OBJ file.
+    #[arg(default_value = "cornell")]
+    scene: String,
+    /// Output folder.
+    #[arg(short, long, default_value = "out")]
+    output: PathBuf,
+    #[command(flatten)]
+    mesh: MeshArgs,
+    #[command(flatten)]
+    factors: FactorArgs,
+    /// Radiosity solver.
+    #[arg(long, value_enum, default_value_t = SolverArg::GaussSeidel)]
+    solver: SolverArg,
+    /// Relative residual at which the solver stops.
+    #[arg(long, default_value_t = 1e-6)]
+    tolerance: f64,
+    /// Iteration cap of the solver.
+    #[arg(long, default_value_t = 10_000)]
+    max_iterations: usize,
+    /// Write the result even when the solver stops before its tolerance.
+    #[arg(long)]
+    keep_partial: bool,
+    /// Preview size, WIDTHxHEIGHT.
+    #[arg(long, default_value = "512x512")]
+    size: String,
+    /// Preview exposure: `auto` or a multiplier of the radiosity.
+    #[arg(long, default_value = "auto")]
+    exposure: String,
+}
+
+/// Draws progress bars on a terminal, nothing otherwise.
+struct Bars {
+    bar: Mutex<Option<ProgressBar>>,
+    tty: bool,
+}
+
+impl Observer for Bars {
+    fn begin(&self, stage: &str, total: u64) {
+        if !self.tty || total == 0 {
+            return;
+        }
+        let bar = ProgressBar::new(total);
+        bar.set_style(
+            ProgressStyle::with_template("{msg:>14} [{bar:40}] {pos}/{len} rows, eta {eta}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .progress_chars("=> "),
+        );
+        bar.set_message(stage.to_string());
+        if let Ok(mut b) = self.bar.lock() {
+            *b = Some(bar);
+        }
+    }
+    fn advance(&self, done: u64) {
+        if let Ok(b) = self.bar.lock() {
+            if let Some(bar) = b.as_ref() {
+                bar.set_position(done);
+            }
+        }
+    }
+    fn end(&self, _stage: &str, _seconds: f64) {
+        if let Ok(mut b) = self.bar.lock() {
+            if let Some(bar) = b.take() {
+                bar.finish_and_clear();
+            }
+        }
+    }
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32)> {
+    let (w, h) = s.split_once('x').with_context(|| format!("--size `{s}`: expected WIDTHxHEIGHT, e.g. 512x512"))?;
+    let w: u32 = w.parse().with_context(|| format!("--size `{s}`: bad width"))?;
+    let h: u32 = h.parse().with_context(|| format!("--size `{s}`: bad height"))?;
+    if !(16..=8192).contains(&w) || !(16..=8192).contains(&h) {
+        bail!("--size `{s}`: each side must be between 16 and 8192 pixels");
+    }
+    Ok((w, h))
+}
+
+fn parse_exposure(s: &str) -> Result<Exposure> {
+    if s == "auto" {
+        return Ok(Exposure::Auto);
+    }
+    match s.parse::<f32>() {
+        Ok(x) if x > 0.0 && x.is_finite() => Ok(Exposure::Fixed(x)),
+        _ => bail!("--exposure `{s}`: expected `auto` or a positive number"),
+    }
+}
+
+fn bake(args: &BakeArgs) -> Result<()> {
+    args.factors.init_threads()?;
+    if !(args.tolerance > 0.0 && args.tolerance < 1.0) {
+        bail!("--tolerance must be in (0, 1), got {}", args.tolerance);
+    }
+    let cfg = BakeConfig {
+        scene: args.scene.clone(),
+        out_dir: args.output.clone(),
+        resolution: args.mesh.resolution()?,
+        estimator: args.factors.choice()?,
+        seed: args.factors.seed,
+        method: match args.solver {
+            SolverArg::Jacobi => Method::Jacobi,
+            SolverArg::GaussSeidel => Method::GaussSeidel,
+            SolverArg::Progressive => Method::Progressive,
+        },
+        solve: Options {
+            tolerance: args.tolerance,
+            max_iterations: args.max_iterations,
+            keep_partial: args.keep_partial,
+        },
+        preview: parse_size(&args.size)?,
+        exposure: parse_exposure(&args.exposure)?,
+        crease_deg: 30.0,
+    };
+    let bars = Bars { bar: Mutex::new(None), tty: std::io::stderr().is_terminal() };
+    let summary = pipeline::bake(&cfg, &bars)?;
+    print!("{}", pipeline::format_summary(&summary));
+    Ok(())
+}
+
+/// Parses the command line and runs it.
+pub fn run() -> Result<()> {
+    let cli = Cli::parse();
+    match &cli.command {
+        Command::Bake(args) => bake(args),
+        Command::Scenes => {
+            for name in builtin::NAMES {
+                println!("{name}");
+            }
+            Ok(())
+        }
+    }
+}

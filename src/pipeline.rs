@@ -1,0 +1,339 @@
+//! The bake pipeline: the only place that knows the order of the stages, and times them.
+//!
+//! `load → mesh → BVH → form factors → solve → per-vertex → EXR, PLY, preview`.
+//! Each stage takes the previous result by reference and returns a new value; the
+//! [`Observer`] hears about stage starts, progress and ends (the CLI draws bars from it),
+//! and the returned [`BakeSummary`] carries times, peak memory and accuracy figures.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use crate::error::{Error, Result};
+use crate::formfactor::{self, AreaMc, Context, Estimator, Pattern, SemiAnalytic};
+use crate::matrix::{Diagnostics, FormFactors};
+use crate::mesh::{PatchSet, Resolution};
+use crate::output::{self, Exposure};
+use crate::scene::Scene;
+use crate::solve::{self, Method, Options, SolveReport, System};
+use crate::visibility::Visibility;
+
+/// Which form-factor estimator to use.
+#[derive(Clone, Debug, PartialEq)]
+pub enum EstimatorChoice {
+    /// Area-to-area Monte Carlo with stratified point pairs.
+    AreaStratified {
+        /// Strata per side per replicate.
+        strata: usize,
+        /// Replicates.
+        replicates: usize,
+    },
+    /// Area-to-area Monte Carlo with independent uniform point pairs.
+    AreaUniform {
+        /// Points per replicate are `strata²`.
+        strata: usize,
+        /// Replicates.
+        replicates: usize,
+    },
+    /// Exact point-to-polygon factor integrated over the emitter, times ray visibility.
+    SemiAnalytic {
+        /// Points per side on the emitter (Gauss–Legendre or stratified).
+        points: usize,
+        /// Visibility rays per emitter point.
+        rays: usize,
+        /// Replicates.
+        replicates: usize,
+    },
+}
+
+impl EstimatorChoice {
+    /// Builds the estimator.
+    pub fn build(&self) -> Box<dyn Estimator> {
+        match *self {
+            EstimatorChoice::AreaStratified { strata, replicates } => {
+                Box::new(AreaMc { pattern: Pattern::Stratified, strata, replicates })
+            }
+            EstimatorChoice::AreaUniform { strata, replicates } => {
+                Box::new(AreaMc { pattern: Pattern::Uniform, strata, replicates })
+            }
+            EstimatorChoice::SemiAnalytic { points, rays, replicates } => {
+                Box::new(SemiAnalytic::new(points, rays, replicates))
+            }
+        }
+    }
+}
+
+/// Everything a bake needs, resolved.
+#[derive(Clone, Debug)]
+pub struct BakeConfig {
+    /// Built-in scene name or OBJ path.
+    pub scene: String,
+    /// Output folder.
+    pub out_dir: PathBuf,
+    /// Patch resolution.
+    pub resolution: Resolution,
+    /// Form-factor estimator.
+    pub estimator: EstimatorChoice,
+    /// Seed of all random streams.
+    pub seed: u64,
+    /// Solver.
+    pub method: Method,
+    /// Solver options.
+    pub solve: Options,
+    /// Preview size in pixels.
+    pub preview: (u32, u32),
+    /// Preview exposure.
+    pub exposure: Exposure,
+    /// Crease angle (degrees) for per-vertex averaging.
+    pub crease_deg: f32,
+}
+
+impl Default for BakeConfig {
+    fn default() -> Self {
+        BakeConfig {
+            scene: "cornell".into(),
+            out_dir: PathBuf::from("out"),
+            resolution: Resolution::Patches(1000),
+            estimator: EstimatorChoice::SemiAnalytic { points: 3, rays: 16, replicates: 2 },
+            seed: 1,
+            method: Method::GaussSeidel,
+            solve: Options::default(),
+            preview: (512, 512),
+            exposure: Exposure::Auto,
+            crease_deg: 30.0,
+        }
+    }
+}
+
+/// Hears about the pipeline's progress.
+pub trait Observer: Sync {
+    /// A stage begins; `total` units of work (0 when unknown).
+    fn begin(&self, _stage: &str, _total: u64) {}
+    /// `done` units of the current stage are finished.
+    fn advance(&self, _done: u64) {}
+    /// The stage ended after `seconds`.
+    fn end(&self, _stage: &str, _seconds: f64) {}
+}
+
+/// An observer that ignores everything.
+pub struct Quiet;
+impl Observer for Quiet {}
+
+/// Time of one stage.
+#[derive(Clone, Debug)]
+pub struct StageTime {
+    /// Stage name.
+    pub stage: &'static str,
+    /// Wall-clock seconds.
+    pub seconds: f64,
+}
+
+/// What a bake did, for the summary screen.
+#[derive(Clone, Debug)]
+pub struct BakeSummary {
+    /// Scene name.
+    pub scene: String,
+    /// Patches.
+    pub patches: usize,
+    /// Triangles traced against.
+    pub triangles: usize,
+    /// Output vertices.
+    pub vertices: usize,
+    /// Rays cast for form factors.
+    pub rays: u64,
+    /// Estimator name.
+    pub estimator: String,
+    /// Form-factor diagnostics.
+    pub diagnostics: Diagnostics,
+    /// Largest standard error of a row sum.
+    pub max_row_sum_stderr: f64,
+    /// Solver report.
+    pub solve: SolveReport,
+    /// Time per stage.
+    pub stages: Vec<StageTime>,
+    /// Peak resident memory in bytes (0 when unknown).
+    pub peak_memory: u64,
+    /// Files written.
+    pub files: Vec<PathBuf>,
+    /// Loader warnings.
+    pub warnings: Vec<String>,
+    /// Embree version in use.
+    pub embree: String,
+}
+
+impl BakeSummary {
+    /// Seconds of the form-factor stage.
+    pub fn stage_seconds(&self, stage: &str) -> f64 {
+        self.stages.iter().filter(|s| s.stage == stage).map(|s| s.seconds).sum()
+    }
+}
+
+/// Peak resident set size of this process (Linux `VmHWM`), in bytes.
+pub fn peak_memory() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse::<u64>().ok()))
+        })
+        .map(|kb| kb * 1024)
+        .unwrap_or(0)
+}
+
+struct Timer<'a> {
+    obs: &'a dyn Observer,
+    stages: Vec<StageTime>,
+}
+
+impl Timer<'_> {
+    fn run<T>(&mut self, stage: &'static str, total: u64, f: impl FnOnce() -> T) -> T {
+        self.obs.begin(stage, total);
+        let t = Instant::now();
+        let out = f();
+        let seconds = t.elapsed().as_secs_f64();
+        self.obs.end(stage, seconds);
+        self.stages.push(StageTime { stage, seconds });
+        out
+    }
+}
+
+/// Computes the form factors of a patch set (builds the BVH as its own stage).
+pub fn form_factors(
+    patches: &PatchSet,
+    estimator: &EstimatorChoice,
+    seed: u64,
+    obs: &dyn Observer,
+) -> Result<(FormFactors, Vec<StageTime>, String)> {
+    let mut timer = Timer { obs, stages: Vec::new() };
+    let vis = timer.run("bvh", 0, || Visibility::new(patches))?;
+    let embree = vis.raw().version();
+    let est = estimator.build();
+    let ctx = Context { patches, vis: &vis, seed };
+    let ff = timer.run("form factors", patches.len() as u64, || {
+        formfactor::compute(&ctx, est.as_ref(), &|d| obs.advance(d))
+    });
+    Ok((ff, timer.stages, embree))
+}
+
+/// Solves for patch radiosity.
+pub fn solve_radiosity(
+    patches: &PatchSet,
+    ff: &FormFactors,
+    method: Method,
+    opts: &Options,
+) -> Result<(Vec<[f64; 3]>, SolveReport)> {
+    let rho: Vec<[f64; 3]> = (0..patches.len()).map(|i| patches.rho(i)).collect();
+    let emit: Vec<[f64; 3]> = (0..patches.len()).map(|i| patches.emit(i)).collect();
+    let sys = System::new(&ff.f, &rho, &emit, &patches.area)?;
+    solve::solve(method, &sys, opts)
+}
+
+/// Runs the whole bake and writes `radiosity.exr`, `mesh.ply` and `preview.png`.
+pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
+    let mut timer = Timer { obs, stages: Vec::new() };
+    let scene = timer.run("load", 0, || Scene::load(&cfg.scene))?;
+    scene.require_emitter()?;
+    let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
+        let p = PatchSet::build(&scene, cfg.resolution)?;
+        p.validate()?;
+        Ok(p)
+    })?;
+    let (ff, stages, embree) = form_factors(&patches, &cfg.estimator, cfg.seed, obs)?;
+    timer.stages.extend(stages);
+    let diagnostics = ff.diagnostics();
+    let max_row_sum_stderr = (0..ff.len()).map(|i| ff.row_sum_stderr(i)).fold(0.0, f64::max);
+    let (b, report) =
+        timer.run("solve", 0, || solve_radiosity(&patches, &ff, cfg.method, &cfg.solve))?;
+    if let Some(k) = b.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
+        return Err(Error::Scene {
+            scene: scene.source.clone(),
+            msg: format!("the solve produced a non-finite radiosity at patch {k}"),
+        });
+    }
+    let verts = timer.run("per-vertex", 0, || output::interpolate(&patches, &b, cfg.crease_deg));
+    std::fs::create_dir_all(&cfg.out_dir).map_err(|e| Error::io(&cfg.out_dir, e))?;
+    let files = timer.run("write", 0, || -> Result<Vec<PathBuf>> {
+        let exr = cfg.out_dir.join("radiosity.exr");
+        output::write_exr(&exr, &verts, &scene.name)?;
+        let camera = scene.camera_or_framing();
+        let (w, h) = cfg.preview;
+        let image = output::render_preview(&verts, &camera, w, h, cfg.exposure);
+        let png = cfg.out_dir.join("preview.png");
+        output::write_png(&png, &image)?;
+        let ply = cfg.out_dir.join("mesh.ply");
+        output::write_ply(&ply, &verts, image.exposure)?;
+        Ok(vec![exr, ply, png])
+    })?;
+    Ok(BakeSummary {
+        scene: scene.name.clone(),
+        patches: patches.len(),
+        triangles: patches.triangles.len(),
+        vertices: verts.positions.len(),
+        rays: ff.rays,
+        estimator: ff.estimator.clone(),
+        diagnostics,
+        max_row_sum_stderr,
+        solve: report,
+        stages: timer.stages,
+        peak_memory: peak_memory(),
+        files,
+        warnings: scene.warnings.clone(),
+        embree,
+    })
+}
+
+/// Formats bytes as MiB with one decimal.
+pub fn mib(bytes: u64) -> String {
+    format!("{:.1} MiB", bytes as f64 / (1024.0 * 1024.0))
+}
+
+/// The one-screen summary printed after a bake.
+pub fn format_summary(s: &BakeSummary) -> String {
+    use std::fmt::Write;
+    let mut o = String::new();
+    let ff_s = s.stage_seconds("form factors");
+    let total: f64 = s.stages.iter().map(|t| t.seconds).sum();
+    let _ = writeln!(o, "baked `{}`: {} patches, {} triangles, {} vertices", s.scene, s.patches, s.triangles, s.vertices);
+    let _ = writeln!(
+        o,
+        "form factors: {} ({} rays, {:.2} Mrays/s, Embree {})",
+        s.estimator,
+        s.rays,
+        s.rays as f64 / ff_s.max(1e-9) / 1e6,
+        s.embree
+    );
+    let d = &s.diagnostics;
+    let _ = writeln!(
+        o,
+        "  row sums in [{:.5}, {:.5}] (worst at patch {}, row-sum std. error <= {:.1e}); reciprocity error <= {:.1e}; {} stored factors{}",
+        d.min_row_sum,
+        d.max_row_sum,
+        d.max_row,
+        s.max_row_sum_stderr,
+        d.reciprocity,
+        d.nnz,
+        if d.out_of_range > 0 { format!("; {} OUT OF [0, 1]", d.out_of_range) } else { String::new() }
+    );
+    let _ = writeln!(
+        o,
+        "solve: {} in {} iterations, relative residual {:.2e}{}",
+        s.solve.solver,
+        s.solve.iterations,
+        s.solve.residual,
+        if s.solve.converged { "" } else { " (NOT converged)" }
+    );
+    let _ = write!(o, "time:");
+    for t in &s.stages {
+        let _ = write!(o, " {} {:.2}s,", t.stage, t.seconds);
+    }
+    let _ = writeln!(o, " total {total:.2}s; peak memory {}", mib(s.peak_memory));
+    for w in &s.warnings {
+        let _ = writeln!(o, "warning: {w}");
+    }
+    let _ = write!(o, "wrote:");
+    for f in &s.files {
+        let _ = write!(o, " {}", f.display());
+    }
+    o.push('\n');
+    o
+}
