@@ -26,6 +26,8 @@ struct Cli {
 enum Command {
     /// Compute form factors, solve, and write radiosity.exr, mesh.ply and preview.png.
     Bake(BakeArgs),
+    /// Compute form factors only and store them (Matrix Market, CSV, JSON) for reuse.
+    Factors(FactorsArgs),
     /// List the built-in scenes.
     Scenes,
 }
@@ -38,6 +40,8 @@ enum EstimatorArg {
     Stratified,
     /// Area-to-area Monte Carlo, independent uniform point pairs.
     Uniform,
+    /// Hemisphere shooting: samples² cosine-weighted rays per patch and replicate.
+    Hemisphere,
 }
 
 #[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -110,6 +114,9 @@ impl FactorArgs {
             EstimatorArg::Stratified => {
                 EstimatorChoice::AreaStratified { strata: self.samples, replicates: self.replicates }
             }
+            EstimatorArg::Hemisphere => {
+                EstimatorChoice::Hemisphere { strata: self.samples, replicates: self.replicates }
+            }
             EstimatorArg::Uniform => {
                 EstimatorChoice::AreaUniform { strata: self.samples, replicates: self.replicates }
             }
@@ -141,7 +148,7 @@ struct BakeArgs {
     #[command(flatten)]
     mesh: MeshArgs,
     #[command(flatten)]
-    factors: FactorArgs,
+    est: FactorArgs,
     /// Radiosity solver.
     #[arg(long, value_enum, default_value_t = SolverArg::GaussSeidel)]
     solver: SolverArg,
@@ -160,6 +167,22 @@ struct BakeArgs {
     /// Preview exposure: `auto` or a multiplier of the radiosity.
     #[arg(long, default_value = "auto")]
     exposure: String,
+    /// Reuse form factors stored by `radiosity factors` (same scene and subdivision).
+    #[arg(long, value_name = "DIR")]
+    factors: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+struct FactorsArgs {
+    /// Built-in scene name or path to an OBJ file.
+    scene: String,
+    /// Output folder.
+    #[arg(short, long, default_value = "factors")]
+    output: PathBuf,
+    #[command(flatten)]
+    mesh: MeshArgs,
+    #[command(flatten)]
+    factors: FactorArgs,
 }
 
 /// Draws progress bars on a terminal, nothing otherwise.
@@ -221,7 +244,7 @@ fn parse_exposure(s: &str) -> Result<Exposure> {
 }
 
 fn bake(args: &BakeArgs) -> Result<()> {
-    args.factors.init_threads()?;
+    args.est.init_threads()?;
     if !(args.tolerance > 0.0 && args.tolerance < 1.0) {
         bail!("--tolerance must be in (0, 1), got {}", args.tolerance);
     }
@@ -229,8 +252,8 @@ fn bake(args: &BakeArgs) -> Result<()> {
         scene: args.scene.clone(),
         out_dir: args.output.clone(),
         resolution: args.mesh.resolution()?,
-        estimator: args.factors.choice()?,
-        seed: args.factors.seed,
+        estimator: args.est.choice()?,
+        seed: args.est.seed,
         method: match args.solver {
             SolverArg::Jacobi => Method::Jacobi,
             SolverArg::GaussSeidel => Method::GaussSeidel,
@@ -244,6 +267,7 @@ fn bake(args: &BakeArgs) -> Result<()> {
         preview: parse_size(&args.size)?,
         exposure: parse_exposure(&args.exposure)?,
         crease_deg: 30.0,
+        factors: args.factors.clone(),
     };
     let bars = Bars { bar: Mutex::new(None), tty: std::io::stderr().is_terminal() };
     let summary = pipeline::bake(&cfg, &bars)?;
@@ -256,6 +280,30 @@ pub fn run() -> Result<()> {
     let cli = Cli::parse();
     match &cli.command {
         Command::Bake(args) => bake(args),
+        Command::Factors(args) => {
+            args.factors.init_threads()?;
+            let bars = Bars { bar: Mutex::new(None), tty: std::io::stderr().is_terminal() };
+            let s = pipeline::factors(
+                &args.scene,
+                args.mesh.resolution()?,
+                &args.factors.choice()?,
+                args.factors.seed,
+                &args.output,
+                &bars,
+            )?;
+            let p = &s.provenance;
+            let d = &s.diagnostics;
+            println!(
+                "factors of `{}`: {} patches, {} stored, {} rays by {} in {:.2}s",
+                p.scene, p.patches, p.nnz, p.rays, p.estimator, p.seconds
+            );
+            println!(
+                "row sums in [{:.5}, {:.5}], reciprocity error <= {:.1e}; peak memory {}",
+                d.min_row_sum, d.max_row_sum, d.reciprocity, pipeline::mib(s.peak_memory)
+            );
+            println!("wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json}}", args.output.display());
+            Ok(())
+        }
         Command::Scenes => {
             for name in builtin::NAMES {
                 println!("{name}");

@@ -27,6 +27,7 @@ pub mod output;
 pub mod sampling;
 pub mod scene;
 pub mod solve;
+pub mod store;
 pub mod visibility;
 
 pub use error::{Error, Result};

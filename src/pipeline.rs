@@ -9,12 +9,13 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use crate::error::{Error, Result};
-use crate::formfactor::{self, AreaMc, Context, Estimator, Pattern, SemiAnalytic};
+use crate::formfactor::{self, AreaMc, Context, Estimator, Hemisphere, Pattern, SemiAnalytic};
 use crate::matrix::{Diagnostics, FormFactors};
 use crate::mesh::{PatchSet, Resolution};
 use crate::output::{self, Exposure};
 use crate::scene::Scene;
 use crate::solve::{self, Method, Options, SolveReport, System};
+use crate::store;
 use crate::visibility::Visibility;
 
 /// Which form-factor estimator to use.
@@ -30,6 +31,13 @@ pub enum EstimatorChoice {
     /// Area-to-area Monte Carlo with independent uniform point pairs.
     AreaUniform {
         /// Points per replicate are `strata²`.
+        strata: usize,
+        /// Replicates.
+        replicates: usize,
+    },
+    /// Hemisphere shooting: cosine-weighted rays from each patch, first hits counted.
+    Hemisphere {
+        /// Rays per replicate are `strata²`.
         strata: usize,
         /// Replicates.
         replicates: usize,
@@ -54,6 +62,9 @@ impl EstimatorChoice {
             }
             EstimatorChoice::AreaUniform { strata, replicates } => {
                 Box::new(AreaMc { pattern: Pattern::Uniform, strata, replicates })
+            }
+            EstimatorChoice::Hemisphere { strata, replicates } => {
+                Box::new(Hemisphere { strata, replicates })
             }
             EstimatorChoice::SemiAnalytic { points, rays, replicates } => {
                 Box::new(SemiAnalytic::new(points, rays, replicates))
@@ -85,6 +96,8 @@ pub struct BakeConfig {
     pub exposure: Exposure,
     /// Crease angle (degrees) for per-vertex averaging.
     pub crease_deg: f32,
+    /// Reuse the form factors stored in this folder instead of casting rays.
+    pub factors: Option<PathBuf>,
 }
 
 impl Default for BakeConfig {
@@ -100,6 +113,7 @@ impl Default for BakeConfig {
             preview: (512, 512),
             exposure: Exposure::Auto,
             crease_deg: 30.0,
+            factors: None,
         }
     }
 }
@@ -238,8 +252,14 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         p.validate()?;
         Ok(p)
     })?;
-    let (ff, stages, embree) = form_factors(&patches, &cfg.estimator, cfg.seed, obs)?;
-    timer.stages.extend(stages);
+    let (ff, embree) = match &cfg.factors {
+        Some(dir) => (timer.run("read factors", 0, || store::read(dir, &patches))?, String::from("not used")),
+        None => {
+            let (ff, stages, embree) = form_factors(&patches, &cfg.estimator, cfg.seed, obs)?;
+            timer.stages.extend(stages);
+            (ff, embree)
+        }
+    };
     let diagnostics = ff.diagnostics();
     let max_row_sum_stderr = (0..ff.len()).map(|i| ff.row_sum_stderr(i)).fold(0.0, f64::max);
     let (b, report) =
@@ -280,6 +300,42 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         warnings: scene.warnings.clone(),
         embree,
     })
+}
+
+/// What `factors` did.
+#[derive(Clone, Debug)]
+pub struct FactorsSummary {
+    /// The stored provenance.
+    pub provenance: store::Provenance,
+    /// Form-factor diagnostics.
+    pub diagnostics: Diagnostics,
+    /// Time per stage.
+    pub stages: Vec<StageTime>,
+    /// Peak resident memory in bytes.
+    pub peak_memory: u64,
+}
+
+/// Computes form factors for a scene and stores them in `out_dir` (see [`store`]).
+pub fn factors(
+    scene: &str,
+    resolution: Resolution,
+    estimator: &EstimatorChoice,
+    seed: u64,
+    out_dir: &std::path::Path,
+    obs: &dyn Observer,
+) -> Result<FactorsSummary> {
+    let mut timer = Timer { obs, stages: Vec::new() };
+    let scene = timer.run("load", 0, || Scene::load(scene))?;
+    let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
+        let p = PatchSet::build(&scene, resolution)?;
+        p.validate()?;
+        Ok(p)
+    })?;
+    let (ff, stages, _) = form_factors(&patches, estimator, seed, obs)?;
+    timer.stages.extend(stages);
+    let diagnostics = ff.diagnostics();
+    let provenance = timer.run("write", 0, || store::write(out_dir, &patches, &ff))?;
+    Ok(FactorsSummary { provenance, diagnostics, stages: timer.stages, peak_memory: peak_memory() })
 }
 
 /// Formats bytes as MiB with one decimal.

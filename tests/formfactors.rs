@@ -1,43 +1,95 @@
+//! Form factors against closed forms (Howell's catalogue), closure and reciprocity.
+
 use radiosity::formfactor::{compute, AreaMc, Context, Pattern};
+use radiosity::matrix::FormFactors;
 use radiosity::mesh::{PatchSet, Resolution};
+use radiosity::pipeline::{self, BakeConfig, EstimatorChoice, Quiet};
 use radiosity::scene::Scene;
 use radiosity::visibility::Visibility;
 
+/// Howell C-14, unit squares with a common edge.
+const F_PERPENDICULAR: f64 = 0.2000438;
+/// Howell C-11, opposed unit squares at distance 1.
+const F_PARALLEL: f64 = 0.1998249;
+
+fn factors(scene: &str, res: Resolution, est: &EstimatorChoice, seed: u64) -> (PatchSet, FormFactors) {
+    let scene = Scene::load(scene).expect("built-in scene");
+    let patches = PatchSet::build(&scene, res).expect("patches");
+    let (ff, _, _) = pipeline::form_factors(&patches, est, seed, &Quiet).expect("form factors");
+    (patches, ff)
+}
+
+/// Each estimate within 3 of its own standard errors of the closed form. Four checks at
+/// 3 sigma: a false alarm has probability about 1% under normality.
 #[test]
-fn smoke_parallel_plates() {
-    let scene = Scene::load("plates-parallel").unwrap();
-    let patches = PatchSet::build(&scene, Resolution::MaxEdge(10.0)).unwrap();
-    let vis = Visibility::new(&patches).unwrap();
-    let ctx = Context { patches: &patches, vis: &vis, seed: 1 };
-    for strata in [4, 16, 64] {
-        let est = AreaMc { pattern: Pattern::Stratified, strata, replicates: 16 };
-        let ff = compute(&ctx, &est, &|_| {});
-        eprintln!("strata {strata}: F01 = {} +- {} rays {}", ff.get(0, 1), ff.stderr(0, 1), ff.rays);
-    }
-    let scene = Scene::load("plates-perpendicular").unwrap();
-    let patches = PatchSet::build(&scene, Resolution::MaxEdge(10.0)).unwrap();
-    let vis = Visibility::new(&patches).unwrap();
-    let ctx = Context { patches: &patches, vis: &vis, seed: 1 };
-    for strata in [4, 16, 64] {
-        let est = AreaMc { pattern: Pattern::Stratified, strata, replicates: 16 };
-        let ff = compute(&ctx, &est, &|_| {});
-        eprintln!("perp strata {strata}: F01 = {} +- {} (exact 0.2000438)", ff.get(0, 1), ff.stderr(0, 1));
+fn plates_match_howell_within_three_standard_errors() {
+    let estimators = [
+        EstimatorChoice::AreaStratified { strata: 16, replicates: 16 },
+        BakeConfig::default().estimator,
+    ];
+    for est in &estimators {
+        for (scene, exact) in [("plates-perpendicular", F_PERPENDICULAR), ("plates-parallel", F_PARALLEL)] {
+            let (_, ff) = factors(scene, Resolution::MaxEdge(10.0), est, 7);
+            let (f, se) = (ff.get(0, 1), ff.stderr(0, 1));
+            eprintln!("{scene} {}: F = {f:.7} ± {se:.1e} (exact {exact}, error {:.1e})", ff.estimator, f - exact);
+            assert!(se > 0.0 && se.is_finite(), "{scene}: standard error {se}");
+            assert!((f - exact).abs() <= 3.0 * se, "{scene} {}: |{f} - {exact}| > 3 × {se}", ff.estimator);
+            assert!(se < 0.01 * exact, "{scene} {}: error bar {se} too wide to be useful", ff.estimator);
+        }
     }
 }
 
+/// In the closed cube every row sums to 1 and A_i F_ij = A_j F_ji, at the default
+/// estimator and sample count.
 #[test]
-fn smoke_cube_rows() {
-    let scene = Scene::load("cube").unwrap();
-    for res in [1.0, 0.5, 0.25, 0.125] {
-        let patches = PatchSet::build(&scene, Resolution::MaxEdge(res)).unwrap();
-        let vis = Visibility::new(&patches).unwrap();
-        let ctx = Context { patches: &patches, vis: &vis, seed: 1 };
-        let est = AreaMc::default();
-        let t = std::time::Instant::now();
-        let ff = compute(&ctx, &est, &|_| {});
-        let d = ff.diagnostics();
-        let worst = (0..ff.len()).map(|i| (ff.row_sum(i) - 1.0).abs()).fold(0.0, f64::max);
-        let worst_se = (0..ff.len()).map(|i| ff.row_sum_stderr(i)).fold(0.0, f64::max);
-        eprintln!("cube h={res}: n={} worst |rowsum-1| {worst:.2e} max se {worst_se:.2e} recip {:.1e} rays {} {:?}", ff.len(), d.reciprocity, ff.rays, t.elapsed());
+fn closed_cube_rows_sum_to_one_and_reciprocity_holds() {
+    let est = BakeConfig::default().estimator;
+    let (patches, ff) = factors("cube", Resolution::MaxEdge(0.25), &est, 3);
+    assert_eq!(patches.len(), 96);
+    let d = ff.diagnostics();
+    eprintln!("cube: row sums in [{}, {}], reciprocity {:.2e}", d.min_row_sum, d.max_row_sum, d.reciprocity);
+    for i in 0..ff.len() {
+        let s = ff.row_sum(i);
+        assert!((s - 1.0).abs() <= 1e-3, "row {i} sums to {s}");
+    }
+    assert!(d.reciprocity <= 1e-3, "reciprocity error {}", d.reciprocity);
+    assert_eq!(d.out_of_range, 0);
+}
+
+/// The area estimator with few samples on adjacent patches is noisy, and says so: its row
+/// sums miss 1, but by amounts its own standard errors account for.
+#[test]
+fn noisy_rows_come_with_honest_error_bars() {
+    let est = EstimatorChoice::AreaStratified { strata: 4, replicates: 8 };
+    let (_, ff) = factors("cube", Resolution::MaxEdge(0.5), &est, 11);
+    let mut outside = 0;
+    for i in 0..ff.len() {
+        let (s, se) = (ff.row_sum(i), ff.row_sum_stderr(i));
+        assert!(s.is_finite() && se.is_finite());
+        if (s - 1.0).abs() > 4.0 * se {
+            outside += 1;
+        }
+    }
+    // 24 rows at 4 sigma: heavy tails allow a couple, not most.
+    assert!(outside <= 3, "{outside} of 24 row sums are more than 4 standard errors from 1");
+}
+
+#[test]
+fn results_do_not_depend_on_thread_count() {
+    let scene = Scene::load("cornell").expect("built-in scene");
+    let patches = PatchSet::build(&scene, Resolution::Patches(150)).expect("patches");
+    let vis = Visibility::new(&patches).expect("embree");
+    let ctx = Context { patches: &patches, vis: &vis, seed: 5 };
+    let run = |threads: usize, est: &dyn radiosity::formfactor::Estimator| {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+        pool.install(|| compute(&ctx, est, &|_| {}))
+    };
+    let area = AreaMc { pattern: Pattern::Stratified, strata: 3, replicates: 2 };
+    let semi = BakeConfig::default().estimator.build();
+    for est in [&area as &dyn radiosity::formfactor::Estimator, semi.as_ref()] {
+        let (a, b) = (run(1, est), run(2, est));
+        assert_eq!(a.f, b.f, "{}", a.estimator);
+        assert_eq!(a.se, b.se, "{}", a.estimator);
+        assert_eq!(a.rays, b.rays);
     }
 }

@@ -1,3 +1,6 @@
 //! Integration tests, one binary (see `Cargo.toml`, `autotests = false`).
 
+mod bake;
 mod formfactors;
+mod invalid;
+mod shelf;
