@@ -24,6 +24,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 pub use self::exr::{read_exr, write_exr, ExrBake};
+pub use self::ply::write_ply;
 pub use self::preview::{render_preview, write_png, Exposure, Image};
 pub use self::vertex::{interpolate, VertexRadiosity, DEFAULT_CREASE_DEG};
 
