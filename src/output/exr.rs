@@ -20,7 +20,7 @@
 //! The triangles are not stored: they are the patch triangles of the scene at the same
 //! resolution, and the PLY output carries them for tools that need the mesh.
 //!
-//! Files are written through [`write_atomic`](super::write_atomic). [`read_exr`] reads
+//! Files are written through [`write_atomic`]. [`read_exr`] reads
 //! them back (values are stored as f32, so a round trip is exact).
 
 use std::path::Path;
