@@ -650,16 +650,30 @@ mod tests {
             })
             .collect();
         let v = crate::output::interpolate(&set, &b, crate::output::DEFAULT_CREASE_DEG);
-        let img = render_preview(&v, &scene.camera_or_framing(), 256, 256, Exposure::Fixed(1.0));
+        let img = render_preview(
+            &v,
+            &scene.camera_or_framing(),
+            256,
+            256,
+            Exposure::Fixed(1.0),
+        );
         if let Some(dir) = std::env::var_os("RADIOSITY_TEST_IMAGES") {
             write_png(&Path::new(&dir).join("cornell-preview.png"), &img).unwrap();
         }
         let left = img.pixel(20, 128);
         let right = img.pixel(235, 128);
-        assert!(left[0] > left[1] + 60 && left[0] > left[2] + 60, "left wall {left:?}");
-        assert!(right[1] > right[0] + 40 && right[1] > right[2] + 40, "right wall {right:?}");
+        assert!(
+            left[0] > left[1] + 60 && left[0] > left[2] + 60,
+            "left wall {left:?}"
+        );
+        assert!(
+            right[1] > right[0] + 40 && right[1] > right[2] + 40,
+            "right wall {right:?}"
+        );
         // The light, on the ceiling near the top centre, clips to white.
-        let top = (0..60).map(|y| img.pixel(128, y)).find(|p| *p == [255, 255, 255]);
+        let top = (0..60)
+            .map(|y| img.pixel(128, y))
+            .find(|p| *p == [255, 255, 255]);
         assert!(top.is_some(), "no light at the top of the image");
         // The camera sees the whole box front-on: no background inside the frame.
         assert!(!is_background(img.pixel(128, 128)));
