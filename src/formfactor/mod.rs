@@ -13,6 +13,7 @@
 //! matrix reciprocal by construction.
 
 pub mod area;
+pub mod semi;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
@@ -24,6 +25,7 @@ use crate::mesh::PatchSet;
 use crate::visibility::Visibility;
 
 pub use area::{AreaMc, Pattern};
+pub use semi::{Nodes, SemiAnalytic};
 
 /// Everything an estimator may read while computing a row.
 pub struct Context<'a> {
