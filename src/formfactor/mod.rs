@@ -14,6 +14,7 @@
 
 pub mod area;
 pub mod hemisphere;
+pub mod semi;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
@@ -26,6 +27,7 @@ use crate::visibility::Visibility;
 
 pub use area::{AreaMc, Pattern};
 pub use hemisphere::Hemisphere;
+pub use semi::{Nodes, SemiAnalytic};
 
 /// Everything an estimator may read while computing a row.
 pub struct Context<'a> {
