@@ -75,9 +75,11 @@ use crate::error::{Error, Result};
 
 pub mod gauss_seidel;
 pub mod jacobi;
+pub mod progressive;
 
 pub use gauss_seidel::GaussSeidel;
 pub use jacobi::Jacobi;
+pub use progressive::{ambient, ambient_term, progressive_steps, Progressive};
 
 /// Relative residual above which an iteration is taken to diverge.
 pub const DIVERGENCE: f64 = 1e12;
@@ -278,11 +280,13 @@ pub enum Method {
     /// [`GaussSeidel`].
     #[default]
     GaussSeidel,
+    /// [`Progressive`].
+    Progressive,
 }
 
 impl Method {
     /// Every method.
-    pub const ALL: [Method; 2] = [Method::Jacobi, Method::GaussSeidel];
+    pub const ALL: [Method; 3] = [Method::Jacobi, Method::GaussSeidel, Method::Progressive];
 
     /// The method's name: `jacobi`, `gauss-seidel` or `progressive`.
     pub fn name(self) -> &'static str {
@@ -293,6 +297,7 @@ impl Method {
         match self {
             Method::Jacobi => &Jacobi,
             Method::GaussSeidel => &GaussSeidel,
+            Method::Progressive => &Progressive,
         }
     }
 }
@@ -314,6 +319,12 @@ impl NamedSolver for GaussSeidel {
     }
 }
 
+impl NamedSolver for Progressive {
+    fn name_static(&self) -> &'static str {
+        progressive::NAME
+    }
+}
+
 impl fmt::Display for Method {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())
@@ -328,6 +339,7 @@ impl FromStr for Method {
         match s.to_ascii_lowercase().as_str() {
             "jacobi" => Ok(Method::Jacobi),
             "gauss-seidel" | "gauss_seidel" | "gaussseidel" | "gs" => Ok(Method::GaussSeidel),
+            "progressive" => Ok(Method::Progressive),
             _ => Err(Error::Config(format!(
                 "unknown solver `{s}` (known: jacobi, gauss-seidel, progressive)"
             ))),
