@@ -30,9 +30,11 @@
 //! `|residual| <= max_i rho_i sum_j |F_ij| * ||ΔB||_inf` per channel. The report's
 //! `history[k]` is this bound after `k` shots, relative as in the [module
 //! docs](super) (cheap: no pass over `F`); it is an upper bound on the true relative residual.
-//! When it falls within tolerance the true residual is computed, and the report's final
-//! `residual` is always the true one. An iteration is one shot, so a scene of `n` patches
-//! typically needs several times `n` iterations.
+//! The true residual is computed when the bound falls within tolerance and, since it is often
+//! well below the bound, also every `n` shots for `n` patches (one pass over `F`, about what
+//! those shots cost); the run stops as soon as either is within tolerance, and the report's
+//! final `residual` is always the true one. An iteration is one shot, so a scene of `n`
+//! patches typically needs a few times `n` iterations.
 //!
 //! ## Ambient term
 //! For display, Cohen et al. add an estimate of the light not yet shot (their §4, "Ambient
@@ -154,7 +156,10 @@ impl Solver for Progressive {
                 return Err(divergence(NAME, shots, r_bound, opts, &gain));
             }
             let at_cap = shots >= opts.max_iterations;
-            if r_bound <= check_at || pick.is_none() || at_cap {
+            // Every n shots (about the cost of one pass over F) the true residual is measured
+            // too, since it is often well below the bound.
+            let periodic = shots > 0 && shots % sys.len().max(1) == 0;
+            if r_bound <= check_at || pick.is_none() || at_cap || periodic {
                 let r = scale.rel(abs_residual(sys, &rows, &state.b));
                 if r <= opts.tolerance || pick.is_none() || at_cap {
                     let out = Outcome {
@@ -166,8 +171,10 @@ impl Solver for Progressive {
                     };
                     return finish(NAME, out, opts, &gain, start);
                 }
-                // Within the bound but not the true residual: only rounding can do that.
-                check_at = r_bound / 2.0;
+                if r_bound <= check_at {
+                    // Within the bound but not the true residual: only rounding can do that.
+                    check_at = r_bound / 2.0;
+                }
             }
             if let Some(i) = pick {
                 state.shoot(sys, &cols, i);
