@@ -1,1 +1,1221 @@
-//! Radiosity solvers for (I - diag(rho) F) B = E.
+//! Radiosity solvers for `B = E + diag(rho) F B`, i.e. `(I - diag(rho) F) B = E`
+//! (radiosidade.md, "Sistema Linear"; Goral, Torrance, Greenberg and Battaile 1984).
+//!
+//! The module owns the solve stage of the pipeline: it takes a form-factor matrix and the
+//! patches' reflectances, emissions and areas ([`System`]), and returns the radiosity of every
+//! patch together with a [`SolveReport`]. It does no I/O and knows nothing of scenes or
+//! meshes. The three RGB channels are solved at once; `B` is a `Vec<[f64; 3]>`.
+//!
+//! ## Methods
+//! One file per method, all behind the [`Solver`] trait (Cohen and Wallace 1993,
+//! *Radiosity and Realistic Image Synthesis*, ch. 5, "Radiosity Matrix Solutions"):
+//! - [`Jacobi`] (`jacobi.rs`): `B^{k+1} = E + diag(rho) F B^k`, rows in parallel.
+//! - [`GaussSeidel`] (`gauss_seidel.rs`): the same sweep in place, row by row, solving each
+//!   row for its own `B_i` so a non-zero diagonal `F_ii` (concave patches) is handled.
+//! - [`Progressive`] (`progressive.rs`): progressive refinement by shooting, Cohen, Chen,
+//!   Wallace and Greenberg 1988, "A progressive refinement approach to fast radiosity image
+//!   generation" (SIGGRAPH '88), with its ambient term for display ([`ambient`],
+//!   [`progressive_steps`]).
+//!
+//! ## The residual
+//! Every solver measures the same quantity, returned by [`residual`]: the relative residual
+//!
+//! ```text
+//! r(B) = max over channels c of  || E_c + diag(rho_c) F B_c - B_c ||_inf / s_c
+//! ```
+//!
+//! where `s_c = ||E_c||_inf`, the largest emission in channel `c`. A channel that emits
+//! nothing is measured against the largest emission of any channel instead (its exact
+//! solution is zero, so a relative measure of its own would be undefined), and a system that
+//! emits nothing at all is measured in absolute terms. A non-finite `B` has residual `inf`.
+//! The solvers start from `B = E` and stop when `r(B) <= tolerance`; the report's `residual`
+//! is always `r` of the returned `B`, computed exactly.
+//!
+//! ## Failures
+//! - Invalid input (lengths, non-finite values, `rho` outside `[0, 1)`, a patch that would
+//!   reflect onto itself all it receives) is refused by [`System::new`] with
+//!   [`Error::Config`] naming the patch or the mismatch.
+//! - Before iterating, the largest `rho_i * sum_j |F_ij|` is checked. Below 1 it bounds the
+//!   spectral radius of `diag(rho) F` and every method converges; at 1 or above (rows of `F`
+//!   summing above 1, which a physical `F` never does) the iteration may still converge,
+//!   since not every row need be that large, and a note is added to the report.
+//! - A run that reaches `max_iterations` returns [`Error::NotConverged`] with a hint, or,
+//!   with `keep_partial`, the partial `B` and `converged: false`.
+//! - A run whose residual grows past `1e12` or stops being finite is diverging (the spectral
+//!   radius of `diag(rho) F` is at least 1): it stops at once with [`Error::NotConverged`],
+//!   whatever `keep_partial` says. No solver returns NaN or infinite values.
+//!
+//! ## Example
+//! ```
+//! use radiosity::solve::{solve, Method, Options, System};
+//! use sprs::TriMat;
+//!
+//! // Two patches facing each other, each seeing half of the other.
+//! let mut t = TriMat::new((2, 2));
+//! t.add_triplet(0, 1, 0.5);
+//! t.add_triplet(1, 0, 0.5);
+//! let f = t.to_csr();
+//! let (rho, emit, area) = ([[0.5; 3]; 2], [[1.0; 3], [0.0; 3]], [1.0; 2]);
+//! let sys = System::new(&f, &rho, &emit, &area)?;
+//! let (b, report) = solve(Method::GaussSeidel, &sys, &Options::default())?;
+//! // B_1 = 0.25 B_0 and B_0 = 1 + 0.25 B_1, so B_0 = 16/15.
+//! assert!((b[0][0] - 16.0 / 15.0).abs() < 1e-5);
+//! assert!(report.converged && report.residual <= 1e-6);
+//! # Ok::<(), radiosity::Error>(())
+//! ```
+
+use std::fmt;
+use std::str::FromStr;
+use std::time::Instant;
+
+use rayon::prelude::*;
+use sprs::CsMat;
+
+use crate::error::{Error, Result};
+
+pub mod gauss_seidel;
+pub mod jacobi;
+pub mod progressive;
+
+pub use gauss_seidel::GaussSeidel;
+pub use jacobi::Jacobi;
+pub use progressive::{ambient, ambient_term, progressive_steps, Progressive};
+
+/// Relative residual above which an iteration is taken to diverge.
+pub const DIVERGENCE: f64 = 1e12;
+
+/// The radiosity system `B = E + diag(rho) F B`, borrowed from the pipeline's results.
+///
+/// Build it with [`System::new`], which validates it; the solvers validate again, so a
+/// `System` written as a struct literal is safe too.
+#[derive(Clone, Copy, Debug)]
+pub struct System<'a> {
+    /// `F[i, j]`, stored by rows (CSR): the fraction of the energy leaving patch i that
+    /// arrives at patch j.
+    pub f: &'a CsMat<f64>,
+    /// Diffuse reflectance of each patch, per channel, in `[0, 1)`.
+    pub rho: &'a [[f64; 3]],
+    /// Emitted exitance of each patch, per channel.
+    pub emit: &'a [[f64; 3]],
+    /// Area of each patch (used by progressive refinement to rank patches by power).
+    pub area: &'a [f64],
+}
+
+impl<'a> System<'a> {
+    /// Validates and borrows the system: `f` square and stored by rows, one `rho`, `emit` and
+    /// `area` per row of `f`, every value finite, `rho` in `[0, 1)`, areas positive, and
+    /// `rho_i * F_ii < 1` (a patch may not reflect onto itself all it receives).
+    pub fn new(
+        f: &'a CsMat<f64>,
+        rho: &'a [[f64; 3]],
+        emit: &'a [[f64; 3]],
+        area: &'a [f64],
+    ) -> Result<System<'a>> {
+        let sys = System { f, rho, emit, area };
+        sys.validate()?;
+        Ok(sys)
+    }
+
+    /// Number of patches.
+    pub fn len(&self) -> usize {
+        self.f.rows()
+    }
+
+    /// True when there are no patches.
+    pub fn is_empty(&self) -> bool {
+        self.f.rows() == 0
+    }
+
+    /// The checks of [`System::new`].
+    pub fn validate(&self) -> Result<()> {
+        let f = self.f;
+        if f.rows() != f.cols() {
+            return Err(Error::Config(format!(
+                "the form-factor matrix is {}x{}, not square",
+                f.rows(),
+                f.cols()
+            )));
+        }
+        if !f.is_csr() {
+            return Err(Error::Config(
+                "the form-factor matrix must be stored by rows (CSR); convert it with to_csr()"
+                    .into(),
+            ));
+        }
+        let n = f.rows();
+        let mismatched: Vec<String> = [
+            ("rho", self.rho.len()),
+            ("emit", self.emit.len()),
+            ("area", self.area.len()),
+        ]
+        .iter()
+        .filter(|(_, len)| *len != n)
+        .map(|(name, len)| format!("{name} has {len} entries"))
+        .collect();
+        if !mismatched.is_empty() {
+            return Err(Error::Config(format!(
+                "{} but the form-factor matrix has {n} rows (one per patch)",
+                mismatched.join(", ")
+            )));
+        }
+        for (i, row) in f.outer_iterator().enumerate() {
+            if let Some((j, v)) = row.iter().find(|(_, v)| !v.is_finite()) {
+                return Err(Error::Config(format!("F[{i}, {j}] = {v} is not finite")));
+            }
+        }
+        for (i, rho) in self.rho.iter().enumerate() {
+            if rho.iter().any(|r| !r.is_finite()) {
+                return Err(Error::Config(format!(
+                    "patch {i}: rho = {rho:?} is not a finite number"
+                )));
+            }
+            if rho.iter().any(|r| !(0.0..1.0).contains(r)) {
+                return Err(Error::Config(format!(
+                    "patch {i}: rho = {rho:?} is outside [0, 1) (a reflectance of 1 or more \
+                     absorbs nothing and the radiosity system has no bounded solution)"
+                )));
+            }
+        }
+        for (i, e) in self.emit.iter().enumerate() {
+            if e.iter().any(|v| !v.is_finite()) {
+                return Err(Error::Config(format!(
+                    "patch {i}: emit = {e:?} is not a finite number"
+                )));
+            }
+        }
+        for (i, &a) in self.area.iter().enumerate() {
+            if !(a.is_finite() && a > 0.0) {
+                return Err(Error::Config(format!(
+                    "patch {i}: area {a} is not a positive number"
+                )));
+            }
+        }
+        for i in 0..n {
+            let fii = f.get(i, i).copied().unwrap_or(0.0);
+            let worst = self.rho[i].iter().fold(0.0f64, |m, r| m.max(r * fii));
+            if worst >= 1.0 {
+                return Err(Error::Config(format!(
+                    "patch {i}: rho * F_ii = {worst:.6} >= 1 (F_ii = {fii:.6}): the patch \
+                     would reflect onto itself at least all it receives"
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Stopping rules of the iterative solvers.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Options {
+    /// Stop when the relative residual (see the [module docs](self)) is at most this.
+    pub tolerance: f64,
+    /// Iteration cap: sweeps for Jacobi and Gauss-Seidel, shots (one patch each) for
+    /// progressive refinement.
+    pub max_iterations: usize,
+    /// On reaching `max_iterations`, return the partial `B` with `converged: false` instead
+    /// of [`Error::NotConverged`].
+    pub keep_partial: bool,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            tolerance: 1e-6,
+            max_iterations: 10_000,
+            keep_partial: false,
+        }
+    }
+}
+
+impl Options {
+    /// Refuses a tolerance that is negative or not a number.
+    pub fn validate(&self) -> Result<()> {
+        if !(self.tolerance.is_finite() && self.tolerance >= 0.0) {
+            return Err(Error::Config(format!(
+                "solver tolerance {} is not a non-negative number",
+                self.tolerance
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// What a solver did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SolveReport {
+    /// The solver's name.
+    pub solver: String,
+    /// Iterations applied to the returned `B` (sweeps, or shots for progressive refinement).
+    pub iterations: usize,
+    /// Relative residual of the returned `B`, computed exactly: the largest over channels of
+    /// `||E + diag(rho) F B - B||_inf / ||E||_inf` (see the [module docs](self)).
+    pub residual: f64,
+    /// `history[k]`: the residual after `k` iterations, `history[0]` for the start `B = E`.
+    /// Jacobi and Gauss-Seidel record the exact residual; progressive refinement records a
+    /// bound on it from the unshot radiosity (see [`Progressive`]).
+    pub history: Vec<f64>,
+    /// Wall-clock seconds.
+    pub seconds: f64,
+    /// Whether `residual <= tolerance`.
+    pub converged: bool,
+    /// Warnings found on the way (rows of `F` summing above 1, an early stop).
+    pub notes: Vec<String>,
+}
+
+/// A method for solving the radiosity system.
+pub trait Solver {
+    /// The method's name, as in reports and errors.
+    fn name(&self) -> &str;
+
+    /// Solves `sys`, starting from `B = E`; see the [module docs](self) for what is returned
+    /// and when it fails.
+    fn solve(&self, sys: &System, opts: &Options) -> Result<(Vec<[f64; 3]>, SolveReport)>;
+}
+
+/// The available solvers, by name.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Method {
+    /// [`Jacobi`].
+    Jacobi,
+    /// [`GaussSeidel`].
+    #[default]
+    GaussSeidel,
+    /// [`Progressive`].
+    Progressive,
+}
+
+impl Method {
+    /// Every method.
+    pub const ALL: [Method; 3] = [Method::Jacobi, Method::GaussSeidel, Method::Progressive];
+
+    /// The method's name: `jacobi`, `gauss-seidel` or `progressive`.
+    pub fn name(self) -> &'static str {
+        self.solver().name_static()
+    }
+
+    fn solver(self) -> &'static dyn NamedSolver {
+        match self {
+            Method::Jacobi => &Jacobi,
+            Method::GaussSeidel => &GaussSeidel,
+            Method::Progressive => &Progressive,
+        }
+    }
+}
+
+/// A solver whose name is known statically (all of this module's).
+trait NamedSolver: Solver + Sync {
+    fn name_static(&self) -> &'static str;
+}
+
+impl NamedSolver for Jacobi {
+    fn name_static(&self) -> &'static str {
+        jacobi::NAME
+    }
+}
+
+impl NamedSolver for GaussSeidel {
+    fn name_static(&self) -> &'static str {
+        gauss_seidel::NAME
+    }
+}
+
+impl NamedSolver for Progressive {
+    fn name_static(&self) -> &'static str {
+        progressive::NAME
+    }
+}
+
+impl fmt::Display for Method {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for Method {
+    type Err = Error;
+
+    /// Parses `jacobi`, `gauss-seidel` (or `gauss_seidel`, `gs`) and `progressive`.
+    fn from_str(s: &str) -> Result<Method> {
+        match s.to_ascii_lowercase().as_str() {
+            "jacobi" => Ok(Method::Jacobi),
+            "gauss-seidel" | "gauss_seidel" | "gaussseidel" | "gs" => Ok(Method::GaussSeidel),
+            "progressive" => Ok(Method::Progressive),
+            _ => Err(Error::Config(format!(
+                "unknown solver `{s}` (known: jacobi, gauss-seidel, progressive)"
+            ))),
+        }
+    }
+}
+
+/// Solves `sys` with `method`.
+pub fn solve(method: Method, sys: &System, opts: &Options) -> Result<(Vec<[f64; 3]>, SolveReport)> {
+    method.solver().solve(sys, opts)
+}
+
+/// The relative residual of `b` (see the [module docs](self)); `inf` when `b` does not have
+/// one entry per patch or is not finite.
+pub fn residual(sys: &System, b: &[[f64; 3]]) -> f64 {
+    if b.len() != sys.len() || sys.validate().is_err() {
+        return f64::INFINITY;
+    }
+    Scale::new(sys.emit).rel(abs_residual(sys, &Rows::new(sys.f), b))
+}
+
+// ---------------------------------------------------------------------------------------
+// Shared machinery of the solvers.
+
+/// Row access to a CSR matrix: `(indices, values)` of row `i`.
+pub(crate) struct Rows<'a> {
+    ptr: Vec<usize>,
+    ind: &'a [usize],
+    val: &'a [f64],
+}
+
+impl<'a> Rows<'a> {
+    /// Rows of `f` (CSR, checked by [`System::validate`]).
+    pub(crate) fn new(f: &'a CsMat<f64>) -> Rows<'a> {
+        Rows {
+            ptr: f.indptr().to_proper().into_owned(),
+            ind: f.indices(),
+            val: f.data(),
+        }
+    }
+
+    /// Number of rows.
+    pub(crate) fn len(&self) -> usize {
+        self.ptr.len().saturating_sub(1)
+    }
+
+    /// Column indices and values of row `i`.
+    #[inline]
+    pub(crate) fn row(&self, i: usize) -> (&'a [usize], &'a [f64]) {
+        let (lo, hi) = (self.ptr[i], self.ptr[i + 1]);
+        (&self.ind[lo..hi], &self.val[lo..hi])
+    }
+}
+
+/// `E_i + rho_i sum_j F_ij b_j`, one row of the Jacobi map.
+#[inline]
+pub(crate) fn gather(sys: &System, rows: &Rows, b: &[[f64; 3]], i: usize) -> [f64; 3] {
+    let (ind, val) = rows.row(i);
+    let mut acc = [0.0; 3];
+    for (&j, &f) in ind.iter().zip(val) {
+        let bj = b[j];
+        for c in 0..3 {
+            acc[c] += f * bj[c];
+        }
+    }
+    let (e, rho) = (sys.emit[i], sys.rho[i]);
+    [
+        e[0] + rho[0] * acc[0],
+        e[1] + rho[1] * acc[1],
+        e[2] + rho[2] * acc[2],
+    ]
+}
+
+/// Per-channel `||E + diag(rho) F b - b||_inf`, rows in parallel.
+pub(crate) fn abs_residual(sys: &System, rows: &Rows, b: &[[f64; 3]]) -> [f64; 3] {
+    (0..rows.len())
+        .into_par_iter()
+        .map(|i| {
+            let g = gather(sys, rows, b, i);
+            [
+                (g[0] - b[i][0]).abs(),
+                (g[1] - b[i][1]).abs(),
+                (g[2] - b[i][2]).abs(),
+            ]
+        })
+        .reduce(|| [0.0; 3], max3)
+}
+
+/// Channel-wise maximum that keeps NaN.
+#[inline]
+pub(crate) fn max3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    let m = |x: f64, y: f64| {
+        if x.is_nan() || y.is_nan() {
+            f64::NAN
+        } else {
+            x.max(y)
+        }
+    };
+    [m(a[0], b[0]), m(a[1], b[1]), m(a[2], b[2])]
+}
+
+/// The divisors of the relative residual, per channel.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Scale([f64; 3]);
+
+impl Scale {
+    /// `||E_c||_inf` per channel; a dark channel uses the brightest one; all dark, 1.
+    pub(crate) fn new(emit: &[[f64; 3]]) -> Scale {
+        let e = emit.iter().fold([0.0f64; 3], |m, e| {
+            [
+                m[0].max(e[0].abs()),
+                m[1].max(e[1].abs()),
+                m[2].max(e[2].abs()),
+            ]
+        });
+        let top = e[0].max(e[1]).max(e[2]);
+        let top = if top > 0.0 { top } else { 1.0 };
+        Scale(e.map(|s| if s > 0.0 { s } else { top }))
+    }
+
+    /// The relative measure of per-channel absolute norms: their largest ratio; `inf` for
+    /// anything not finite.
+    pub(crate) fn rel(&self, abs: [f64; 3]) -> f64 {
+        let mut r = 0.0f64;
+        for (a, s) in abs.iter().zip(&self.0) {
+            let q = a / s;
+            if !q.is_finite() {
+                return f64::INFINITY;
+            }
+            r = r.max(q);
+        }
+        r
+    }
+}
+
+/// How much `diag(rho) F` can amplify: `max_i rho_ic sum_j |F_ij|` per channel, which bounds
+/// its spectral radius (and its infinity norm).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Gain {
+    /// The bound, per channel.
+    pub(crate) gain: [f64; 3],
+    /// The patch where the largest bound is reached.
+    pub(crate) patch: usize,
+    /// That patch's row sum `sum_j F_ij`.
+    pub(crate) row_sum: f64,
+    /// That patch's largest reflectance.
+    pub(crate) rho: f64,
+}
+
+impl Gain {
+    pub(crate) fn new(sys: &System, rows: &Rows) -> Gain {
+        let mut g = Gain {
+            gain: [0.0; 3],
+            patch: 0,
+            row_sum: 0.0,
+            rho: 0.0,
+        };
+        let mut best = f64::NEG_INFINITY;
+        for i in 0..rows.len() {
+            let (_, val) = rows.row(i);
+            let abs_sum: f64 = val.iter().map(|v| v.abs()).sum();
+            let rho = sys.rho[i];
+            for (g, r) in g.gain.iter_mut().zip(&rho) {
+                *g = g.max(r * abs_sum);
+            }
+            let here = rho[0].max(rho[1]).max(rho[2]) * abs_sum;
+            if here > best {
+                best = here;
+                g.patch = i;
+                g.row_sum = val.iter().sum();
+                g.rho = rho[0].max(rho[1]).max(rho[2]);
+            }
+        }
+        g
+    }
+
+    /// The largest bound over channels.
+    pub(crate) fn max(&self) -> f64 {
+        self.gain[0].max(self.gain[1]).max(self.gain[2])
+    }
+
+    /// True when the bound does not guarantee convergence.
+    pub(crate) fn suspicious(&self) -> bool {
+        self.max() >= 1.0
+    }
+
+    /// The notes to put in a report before iterating.
+    pub(crate) fn notes(&self) -> Vec<String> {
+        if self.suspicious() {
+            vec![format!(
+                "rho * (row sum of F) reaches {:.4} at patch {} (row sum {:.4}, rho {:.3}): \
+                 rows of a physical F sum to at most 1, and the iteration may diverge",
+                self.max(),
+                self.patch,
+                self.row_sum,
+                self.rho
+            )]
+        } else {
+            Vec::new()
+        }
+    }
+
+    /// The part of a hint that blames `F`, or nothing.
+    fn blame(&self) -> String {
+        if self.suspicious() {
+            format!(
+                "; rows of F sum above 1 (max {:.4} at patch {}) with rho up to {:.3}: check \
+                 the form factors",
+                self.row_sum, self.patch, self.rho
+            )
+        } else {
+            String::new()
+        }
+    }
+}
+
+/// True when a relative residual says the iteration is diverging.
+#[inline]
+pub(crate) fn diverging(r: f64) -> bool {
+    !r.is_finite() || r > DIVERGENCE
+}
+
+/// The error for a diverging run: always an error, whatever `keep_partial` says.
+pub(crate) fn divergence(
+    solver: &str,
+    iterations: usize,
+    residual: f64,
+    opts: &Options,
+    gain: &Gain,
+) -> Error {
+    Error::NotConverged {
+        solver: solver.to_string(),
+        iterations,
+        residual,
+        tolerance: opts.tolerance,
+        hint: format!(
+            "; the iteration diverges (residual past {DIVERGENCE:.0e} or not finite): the \
+             spectral radius of diag(rho) F is at least 1{}",
+            gain.blame()
+        ),
+    }
+}
+
+/// The hint of a run stopped by the iteration cap.
+fn cap_hint(history: &[f64], tolerance: f64, gain: &Gain) -> String {
+    let blame = gain.blame();
+    if !blame.is_empty() {
+        return blame;
+    }
+    let mut hint = String::from("; raise --max-iterations");
+    // Average rate over the last few iterations, to say how many more would do.
+    let len = history.len();
+    let window = (len.saturating_sub(1)).min(20);
+    if window > 0 {
+        let (first, last) = (history[len - 1 - window], history[len - 1]);
+        if first > 0.0 && last > 0.0 && last < first {
+            let rate = (last / first).powf(1.0 / window as f64);
+            let more = ((tolerance.max(f64::MIN_POSITIVE) / last).ln() / rate.ln()).ceil();
+            if more.is_finite() && more > 0.0 {
+                hint.push_str(&format!(
+                    " (the residual falls by {rate:.4} per iteration: about {more:.0} more)"
+                ));
+            }
+        }
+    }
+    hint
+}
+
+/// What a solver hands to [`finish`].
+pub(crate) struct Outcome {
+    pub(crate) b: Vec<[f64; 3]>,
+    pub(crate) iterations: usize,
+    pub(crate) residual: f64,
+    pub(crate) history: Vec<f64>,
+    pub(crate) notes: Vec<String>,
+}
+
+/// Turns a finished run into the result: converged, partial (`keep_partial`) or
+/// [`Error::NotConverged`].
+pub(crate) fn finish(
+    solver: &str,
+    out: Outcome,
+    opts: &Options,
+    gain: &Gain,
+    start: Instant,
+) -> Result<(Vec<[f64; 3]>, SolveReport)> {
+    if diverging(out.residual) || out.b.iter().flatten().any(|v| !v.is_finite()) {
+        return Err(divergence(solver, out.iterations, out.residual, opts, gain));
+    }
+    let converged = out.residual <= opts.tolerance;
+    let mut report = SolveReport {
+        solver: solver.to_string(),
+        iterations: out.iterations,
+        residual: out.residual,
+        history: out.history,
+        seconds: start.elapsed().as_secs_f64(),
+        converged,
+        notes: out.notes,
+    };
+    if converged {
+        return Ok((out.b, report));
+    }
+    let hint = cap_hint(&report.history, opts.tolerance, gain);
+    if opts.keep_partial {
+        report.notes.push(format!(
+            "stopped after {} iterations at residual {:.3e} (tolerance {:.1e}){hint}",
+            out.iterations, out.residual, opts.tolerance
+        ));
+        return Ok((out.b, report));
+    }
+    Err(Error::NotConverged {
+        solver: solver.to_string(),
+        iterations: out.iterations,
+        residual: out.residual,
+        tolerance: opts.tolerance,
+        hint,
+    })
+}
+
+/// The loop shared by the sweeping solvers (Jacobi, Gauss-Seidel).
+///
+/// `pass(b, next)` writes the next iterate into `next` and returns the per-channel absolute
+/// residual of `b`, so each pass over `F` also measures the iterate it starts from. The
+/// loop returns the first iterate whose residual is within tolerance (the one the residual
+/// was computed for, so the reported residual is exact), or the last one at the cap.
+pub(crate) fn sweep_loop(
+    solver: &str,
+    sys: &System,
+    opts: &Options,
+    mut pass: impl FnMut(&Rows, &[[f64; 3]], &mut [[f64; 3]]) -> [f64; 3],
+) -> Result<(Vec<[f64; 3]>, SolveReport)> {
+    let start = Instant::now();
+    opts.validate()?;
+    sys.validate()?;
+    let rows = Rows::new(sys.f);
+    let scale = Scale::new(sys.emit);
+    let gain = Gain::new(sys, &rows);
+    let notes = gain.notes();
+    let mut b = sys.emit.to_vec();
+    let mut next = b.clone();
+    let mut history = Vec::new();
+    let mut k = 0;
+    loop {
+        let r = scale.rel(pass(&rows, &b, &mut next));
+        history.push(r);
+        if diverging(r) {
+            return Err(divergence(solver, k, r, opts, &gain));
+        }
+        if r <= opts.tolerance || k >= opts.max_iterations {
+            let out = Outcome {
+                b,
+                iterations: k,
+                residual: r,
+                history,
+                notes,
+            };
+            return finish(solver, out, opts, &gain, start);
+        }
+        std::mem::swap(&mut b, &mut next);
+        k += 1;
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod testing {
+    //! Test systems shared by the solvers' tests.
+    use super::*;
+    use sprs::TriMat;
+
+    /// An owned system.
+    pub struct Owned {
+        pub f: CsMat<f64>,
+        pub rho: Vec<[f64; 3]>,
+        pub emit: Vec<[f64; 3]>,
+        pub area: Vec<f64>,
+    }
+
+    impl Owned {
+        pub fn sys(&self) -> System<'_> {
+            System::new(&self.f, &self.rho, &self.emit, &self.area).unwrap()
+        }
+    }
+
+    /// CSR from dense rows, zeros left out.
+    pub fn dense(rows: &[&[f64]]) -> CsMat<f64> {
+        let n = rows.len();
+        let mut t = TriMat::new((n, rows.first().map_or(0, |r| r.len())));
+        for (i, r) in rows.iter().enumerate() {
+            for (j, &v) in r.iter().enumerate() {
+                if v != 0.0 {
+                    t.add_triplet(i, j, v);
+                }
+            }
+        }
+        t.to_csr()
+    }
+
+    /// The notes' infinite shelf: strips A (floor, width 1), B (back, width g = sqrt 3),
+    /// C (top, width 1), exact 2D (crossed-strings) form factors.
+    pub fn shelf_f() -> (CsMat<f64>, Vec<f64>) {
+        let g = 3f64.sqrt();
+        let (a, b) = (1.0, g);
+        let f_ab = (1.0 + g - (1.0 + g * g).sqrt()) / 2.0;
+        let f_ac = (1.0 + g * g).sqrt() - g;
+        let f_bc = (1.0 + 1.0 / g - (1.0 + 1.0 / (g * g)).sqrt()) / 2.0;
+        let f_ba = f_ab * a / b;
+        let (f_ca, f_cb) = (f_ac, f_ab);
+        let f = dense(&[&[0.0, f_ab, f_ac], &[f_ba, 0.0, f_bc], &[f_ca, f_cb, 0.0]]);
+        (f, vec![a, b, a])
+    }
+
+    /// The shelf with grey `rho` and `emit` per strip.
+    pub fn shelf(rho: [f64; 3], emit: [f64; 3]) -> Owned {
+        let (f, area) = shelf_f();
+        Owned {
+            f,
+            rho: rho.map(|r| [r; 3]).to_vec(),
+            emit: emit.map(|e| [e; 3]).to_vec(),
+            area,
+        }
+    }
+
+    /// The four rows of the notes' table: (rho, E, B), B_B of row 4 restored to 1.02906
+    /// and row 3's exact value.
+    pub fn shelf_table() -> [([f64; 3], [f64; 3], [f64; 3]); 4] {
+        let third = 1.0 / 3.0;
+        let exact = (3.0 - 3f64.sqrt()) / 6.0;
+        [
+            ([0.0, 0.5, third], [1.0, 0.0, 0.0], [1.0, 0.11660, 0.10354]),
+            (
+                [0.1, 0.5, third],
+                [1.0, 0.0, 0.0],
+                [1.00709, 0.11743, 0.10428],
+            ),
+            ([0.5, 0.0, 0.5], [0.0, 1.0, 0.0], [exact, 1.0, exact]),
+            (
+                [0.1, 0.1, 0.5],
+                [1.0, 1.0, 0.0],
+                [1.04647, 1.02906, 0.32853],
+            ),
+        ]
+    }
+
+    /// A small deterministic generator (SplitMix64).
+    pub struct Rng(u64);
+
+    impl Rng {
+        pub fn new(seed: u64) -> Rng {
+            Rng(seed)
+        }
+
+        pub fn next_u64(&mut self) -> u64 {
+            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            z ^ (z >> 31)
+        }
+
+        /// Uniform in [0, 1).
+        pub fn uniform(&mut self) -> f64 {
+            (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
+    /// A random-ish sparse system: about `per_row` entries a row (the diagonal included
+    /// sometimes), row sums in [0.2, 0.98), rho in [0, 0.95), a fifth of the patches emitting.
+    pub fn random(n: usize, per_row: usize, seed: u64) -> Owned {
+        let mut rng = Rng::new(seed);
+        let mut t = TriMat::new((n, n));
+        for i in 0..n {
+            let mut cols: Vec<usize> = (0..per_row)
+                .map(|_| (rng.next_u64() % n as u64) as usize)
+                .collect();
+            cols.sort_unstable();
+            cols.dedup();
+            let w: Vec<f64> = cols.iter().map(|_| 0.05 + rng.uniform()).collect();
+            let total: f64 = w.iter().sum();
+            let target = 0.2 + 0.78 * rng.uniform();
+            for (&j, &wj) in cols.iter().zip(&w) {
+                t.add_triplet(i, j, wj / total * target);
+            }
+        }
+        let rho = (0..n)
+            .map(|_| [0.0; 3].map(|_: f64| 0.95 * rng.uniform()))
+            .collect();
+        let emit = (0..n)
+            .map(|_| {
+                if rng.uniform() < 0.2 {
+                    [0.0; 3].map(|_: f64| 0.5 + rng.uniform())
+                } else {
+                    [0.0; 3]
+                }
+            })
+            .collect();
+        let area = (0..n).map(|_| 0.5 + 1.5 * rng.uniform()).collect();
+        Owned {
+            f: t.to_csr(),
+            rho,
+            emit,
+            area,
+        }
+    }
+
+    /// A closed furnace: rows summing to 1 (the diagonal included), uniform rho and E.
+    pub fn furnace(n: usize, rho: [f64; 3], emit: [f64; 3]) -> Owned {
+        let mut rng = Rng::new(7);
+        let mut rows = vec![vec![0.0; n]; n];
+        for row in rows.iter_mut() {
+            for v in row.iter_mut() {
+                *v = rng.uniform();
+            }
+            let s: f64 = row.iter().sum();
+            row.iter_mut().for_each(|v| *v /= s);
+        }
+        let refs: Vec<&[f64]> = rows.iter().map(Vec::as_slice).collect();
+        Owned {
+            f: dense(&refs),
+            rho: vec![rho; n],
+            emit: vec![emit; n],
+            area: vec![1.0; n],
+        }
+    }
+
+    /// Largest |x - y| over the largest |x|.
+    pub fn rel_diff(x: &[[f64; 3]], y: &[[f64; 3]]) -> f64 {
+        assert_eq!(x.len(), y.len());
+        let top = x.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
+        let d = x
+            .iter()
+            .flatten()
+            .zip(y.iter().flatten())
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        d / top
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::testing::*;
+    use super::*;
+
+    fn tight() -> Options {
+        Options {
+            tolerance: 1e-12,
+            max_iterations: 1_000_000,
+            keep_partial: false,
+        }
+    }
+
+    #[test]
+    fn shelf_table_every_solver() {
+        for (rho, emit, want) in shelf_table() {
+            let owned = shelf(rho, emit);
+            for method in Method::ALL {
+                let (b, report) = solve(method, &owned.sys(), &tight()).unwrap();
+                assert!(report.converged, "{method}");
+                for (p, (bp, wp)) in b.iter().zip(want).enumerate() {
+                    for v in bp {
+                        assert!(
+                            (v - wp).abs() < 5e-5,
+                            "{method}, rho {rho:?}, E {emit:?}: B[{p}] = {v} not {wp}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn shelf_rows_as_channels() {
+        // Rows 1 to 3 of the table in the three channels of one system.
+        let (f, area) = shelf_f();
+        let table = shelf_table();
+        let rho: Vec<[f64; 3]> = (0..3).map(|p| [0, 1, 2].map(|r| table[r].0[p])).collect();
+        let emit: Vec<[f64; 3]> = (0..3).map(|p| [0, 1, 2].map(|r| table[r].1[p])).collect();
+        let sys = System::new(&f, &rho, &emit, &area).unwrap();
+        for method in Method::ALL {
+            let (b, _) = solve(method, &sys, &tight()).unwrap();
+            for (p, bp) in b.iter().enumerate() {
+                for (c, row) in table.iter().take(3).enumerate() {
+                    assert!((bp[c] - row.2[p]).abs() < 5e-5, "{method}: B[{p}][{c}]");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn furnace_is_e_over_one_minus_rho() {
+        let rho = [0.3, 0.6, 0.9];
+        let emit = [1.0, 2.0, 0.5];
+        let owned = furnace(12, rho, emit);
+        for method in Method::ALL {
+            let (b, report) = solve(method, &owned.sys(), &tight()).unwrap();
+            assert!(report.converged);
+            for bi in &b {
+                for c in 0..3 {
+                    let want = emit[c] / (1.0 - rho[c]);
+                    assert!(
+                        (bi[c] - want).abs() < 1e-9,
+                        "{method}: {} not {want}",
+                        bi[c]
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn two_by_two_closed_form() {
+        // With a diagonal (patch 0 concave): (I - diag(rho) F) B = E by Cramer's rule.
+        let f = dense(&[&[0.1, 0.6], &[0.3, 0.2]]);
+        let rho = [[0.8, 0.5, 0.0], [0.7, 0.25, 0.9]];
+        let emit = [[1.0, 0.0, 2.0], [0.5, 1.0, 0.0]];
+        let area = [1.0, 2.0];
+        let sys = System::new(&f, &rho, &emit, &area).unwrap();
+        let mut want = [[0.0; 3]; 2];
+        for c in 0..3 {
+            let (a, b) = (1.0 - rho[0][c] * 0.1, -rho[0][c] * 0.6);
+            let (cc, d) = (-rho[1][c] * 0.3, 1.0 - rho[1][c] * 0.2);
+            let det = a * d - b * cc;
+            want[0][c] = (emit[0][c] * d - b * emit[1][c]) / det;
+            want[1][c] = (a * emit[1][c] - cc * emit[0][c]) / det;
+        }
+        for method in Method::ALL {
+            let (b, report) = solve(method, &sys, &tight()).unwrap();
+            assert!(rel_diff(&want, &b) < 1e-10, "{method}: {b:?} not {want:?}");
+            assert!(report.residual <= 1e-12);
+            assert!((residual(&sys, &b) - report.residual).abs() <= 1e-15);
+        }
+    }
+
+    #[test]
+    fn agree_on_random_sparse_system() {
+        let owned = random(50, 8, 42);
+        let sys = owned.sys();
+        let results: Vec<_> = Method::ALL
+            .iter()
+            .map(|&m| solve(m, &sys, &tight()).unwrap())
+            .collect();
+        for (_, report) in &results {
+            assert!(
+                report.converged && report.residual <= 1e-12,
+                "{}",
+                report.solver
+            );
+        }
+        for (b, report) in &results[1..] {
+            let d = rel_diff(&results[0].0, b);
+            assert!(d < 1e-8, "{} differs from jacobi by {d:e}", report.solver);
+        }
+        // Sanity: the system is not trivial.
+        assert!(results[0].1.iterations > 10);
+    }
+
+    #[test]
+    fn cap_is_reported() {
+        let owned = random(50, 8, 3);
+        let sys = owned.sys();
+        for method in Method::ALL {
+            let opts = Options {
+                tolerance: 1e-12,
+                max_iterations: 2,
+                keep_partial: false,
+            };
+            match solve(method, &sys, &opts) {
+                Err(Error::NotConverged {
+                    solver,
+                    iterations,
+                    residual,
+                    tolerance,
+                    hint,
+                }) => {
+                    assert_eq!(solver, method.name());
+                    assert_eq!(iterations, 2);
+                    assert!(residual > 1e-12 && residual.is_finite());
+                    assert_eq!(tolerance, 1e-12);
+                    assert!(hint.contains("--max-iterations"), "{hint}");
+                }
+                other => panic!("{method}: expected NotConverged, got {other:?}"),
+            }
+            let opts = Options {
+                keep_partial: true,
+                ..opts
+            };
+            let (b, report) = solve(method, &sys, &opts).unwrap();
+            assert!(!report.converged);
+            assert_eq!(report.iterations, 2);
+            assert_eq!(report.history.len(), 3);
+            assert!(b.iter().flatten().all(|v| v.is_finite()));
+            assert!(
+                (residual(&sys, &b) - report.residual).abs() <= 1e-15 * report.residual.max(1.0)
+            );
+            assert!(report.notes.iter().any(|n| n.contains("stopped after 2")));
+        }
+    }
+
+    #[test]
+    fn divergence_stops_with_spectral_radius_error() {
+        // Rows summing to 1.5 with rho 0.9: diag(rho) F has spectral radius 1.35.
+        let f = dense(&[&[0.0, 1.5], &[1.5, 0.0]]);
+        let (rho, emit, area) = ([[0.9; 3]; 2], [[1.0; 3]; 2], [1.0; 2]);
+        let sys = System::new(&f, &rho, &emit, &area).unwrap();
+        for method in Method::ALL {
+            let opts = Options {
+                keep_partial: true,
+                max_iterations: 1_000_000,
+                ..tight()
+            };
+            match solve(method, &sys, &opts) {
+                Err(Error::NotConverged { hint, residual, .. }) => {
+                    assert!(hint.contains("spectral radius"), "{method}: {hint}");
+                    assert!(hint.contains("rows of F sum above 1"), "{method}: {hint}");
+                    assert!(residual > DIVERGENCE || !residual.is_finite());
+                }
+                other => panic!("{method}: expected divergence, got {other:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn large_row_sum_is_noted_but_may_converge() {
+        // Row 0 reflects 1.08 of what it gathers, row 1 only 0.25: spectral radius ~0.52.
+        let f = dense(&[&[0.0, 1.2], &[0.5, 0.0]]);
+        let (rho, emit, area) = ([[0.9; 3], [0.5; 3]], [[1.0; 3], [0.0; 3]], [1.0; 2]);
+        let sys = System::new(&f, &rho, &emit, &area).unwrap();
+        for method in Method::ALL {
+            let (b, report) = solve(method, &sys, &tight()).unwrap();
+            assert!(report.converged);
+            assert!(
+                report.notes.iter().any(|n| n.contains("patch 0")),
+                "{:?}",
+                report.notes
+            );
+            // B_0 = 1 + 1.08 B_1, B_1 = 0.25 B_0.
+            assert!((b[0][0] - 1.0 / (1.0 - 0.27)).abs() < 1e-10, "{method}");
+        }
+    }
+
+    #[test]
+    fn physical_system_has_no_notes() {
+        let owned = random(20, 5, 9);
+        let (_, report) = solve(Method::Jacobi, &owned.sys(), &Options::default()).unwrap();
+        assert!(report.notes.is_empty(), "{:?}", report.notes);
+    }
+
+    #[test]
+    fn refuses_invalid_systems() {
+        let f = dense(&[&[0.0, 0.5], &[0.5, 0.0]]);
+        let ok_rho = [[0.5; 3]; 2];
+        let ok_emit = [[1.0; 3]; 2];
+        let ok_area = [1.0; 2];
+        let msg = |r: Result<System>| match r {
+            Err(Error::Config(m)) => m,
+            other => panic!("expected Config, got {other:?}"),
+        };
+        let m = msg(System::new(&f, &ok_rho[..1], &ok_emit, &ok_area));
+        assert!(
+            m.contains("rho has 1 entries") && m.contains("2 rows"),
+            "{m}"
+        );
+        let three = [1.0; 3];
+        let m = msg(System::new(&f, &ok_rho, &ok_emit, &three));
+        assert!(
+            m.contains("area has 3 entries") && !m.contains("rho"),
+            "{m}"
+        );
+        let m = msg(System::new(
+            &f,
+            &[[0.5, 1.0, 0.5], [0.5; 3]],
+            &ok_emit,
+            &ok_area,
+        ));
+        assert!(m.contains("patch 0") && m.contains("[0, 1)"), "{m}");
+        let m = msg(System::new(
+            &f,
+            &[[0.5; 3], [0.5, f64::NAN, 0.5]],
+            &ok_emit,
+            &ok_area,
+        ));
+        assert!(m.contains("patch 1") && m.contains("not a finite"), "{m}");
+        let m = msg(System::new(&f, &[[-0.1; 3], [0.5; 3]], &ok_emit, &ok_area));
+        assert!(m.contains("patch 0"), "{m}");
+        let m = msg(System::new(
+            &f,
+            &ok_rho,
+            &[[1.0; 3], [f64::INFINITY; 3]],
+            &ok_area,
+        ));
+        assert!(m.contains("patch 1") && m.contains("emit"), "{m}");
+        let m = msg(System::new(&f, &ok_rho, &ok_emit, &[1.0, 0.0]));
+        assert!(m.contains("patch 1") && m.contains("area"), "{m}");
+        let bad = dense(&[&[0.0, f64::NAN], &[0.5, 0.0]]);
+        let m = msg(System::new(&bad, &ok_rho, &ok_emit, &ok_area));
+        assert!(m.contains("F[0, 1]"), "{m}");
+        let rect = dense(&[&[0.0, 0.5, 0.1], &[0.5, 0.0, 0.1]]);
+        let m = msg(System::new(&rect, &ok_rho, &ok_emit, &ok_area));
+        assert!(m.contains("2x3"), "{m}");
+        let csc = f.to_csc();
+        let m = msg(System::new(&csc, &ok_rho, &ok_emit, &ok_area));
+        assert!(m.contains("CSR"), "{m}");
+        let self_loop = dense(&[&[1.2, 0.0], &[0.5, 0.0]]);
+        let m = msg(System::new(
+            &self_loop,
+            &[[0.9; 3], [0.5; 3]],
+            &ok_emit,
+            &ok_area,
+        ));
+        assert!(m.contains("patch 0") && m.contains("F_ii"), "{m}");
+        // A literal System is checked by the solvers too.
+        let sys = System {
+            f: &f,
+            rho: &ok_rho[..1],
+            emit: &ok_emit,
+            area: &ok_area,
+        };
+        for method in Method::ALL {
+            assert!(matches!(
+                solve(method, &sys, &Options::default()),
+                Err(Error::Config(_))
+            ));
+        }
+        assert_eq!(residual(&sys, &ok_emit), f64::INFINITY);
+    }
+
+    #[test]
+    fn refuses_bad_tolerance() {
+        let owned = shelf([0.5; 3], [1.0, 0.0, 0.0]);
+        for tolerance in [f64::NAN, -1.0] {
+            let opts = Options {
+                tolerance,
+                ..Options::default()
+            };
+            for method in Method::ALL {
+                assert!(matches!(
+                    solve(method, &owned.sys(), &opts),
+                    Err(Error::Config(_))
+                ));
+            }
+        }
+    }
+
+    #[test]
+    fn dark_and_empty_systems() {
+        // Nothing emits: B = 0 at once.
+        let owned = shelf([0.5; 3], [0.0; 3]);
+        for method in Method::ALL {
+            let (b, report) = solve(method, &owned.sys(), &Options::default()).unwrap();
+            assert!(report.converged && report.iterations == 0);
+            assert!(b.iter().flatten().all(|&v| v == 0.0));
+        }
+        let f = CsMat::<f64>::zero((0, 0));
+        let sys = System::new(&f, &[], &[], &[]).unwrap();
+        for method in Method::ALL {
+            let (b, report) = solve(method, &sys, &Options::default()).unwrap();
+            assert!(b.is_empty() && report.converged);
+        }
+    }
+
+    #[test]
+    fn dark_channel_is_measured_against_the_others() {
+        let scale = Scale::new(&[[2.0, 0.0, 0.5], [1.0, 0.0, 0.25]]);
+        assert_eq!(scale.0, [2.0, 2.0, 0.5]);
+        assert_eq!(scale.rel([0.2, 0.1, 0.1]), 0.2);
+        assert_eq!(scale.rel([0.0, f64::NAN, 0.0]), f64::INFINITY);
+        assert_eq!(Scale::new(&[[0.0; 3]]).0, [1.0; 3]);
+    }
+
+    #[test]
+    fn method_names_round_trip() {
+        for m in Method::ALL {
+            assert_eq!(m.name().parse::<Method>().unwrap(), m);
+            assert_eq!(m.to_string(), m.name());
+            assert_eq!(m.solver().name(), m.name());
+        }
+        assert_eq!("GS".parse::<Method>().unwrap(), Method::GaussSeidel);
+        assert!(matches!("cg".parse::<Method>(), Err(Error::Config(m)) if m.contains("jacobi")));
+    }
+}
