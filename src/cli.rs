@@ -80,8 +80,8 @@ struct FactorArgs {
     /// Samples per side: emitter points per side (semi) or strata per side (area estimators).
     #[arg(long, default_value_t = 4)]
     samples: usize,
-    /// Visibility rays per emitter point (semi estimator).
-    #[arg(long, default_value_t = 16)]
+    /// Visibility strata per side for each emitter point (semi estimator): rays² rays.
+    #[arg(long, default_value_t = 2)]
     rays: usize,
     /// Independent replicates, for the standard errors (at least 2).
     #[arg(long, default_value_t = 4)]

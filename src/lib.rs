@@ -24,6 +24,7 @@ pub mod formfactor;
 pub mod matrix;
 pub mod mesh;
 pub mod output;
+pub mod pipeline;
 pub mod sampling;
 pub mod scene;
 pub mod solve;

@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use crate::error::{Error, Result};
-use crate::formfactor::{self, AreaMc, Context, Estimator, Hemisphere, Pattern, SemiAnalytic};
+use crate::formfactor::{self, AreaMc, Context, Estimator, Hemisphere, Nodes, Pattern, SemiAnalytic};
 use crate::matrix::{Diagnostics, FormFactors};
 use crate::mesh::{PatchSet, Resolution};
 use crate::output::{self, Exposure};
@@ -67,7 +67,13 @@ impl EstimatorChoice {
                 Box::new(Hemisphere { strata, replicates })
             }
             EstimatorChoice::SemiAnalytic { points, rays, replicates } => {
-                Box::new(SemiAnalytic::new(points, rays, replicates))
+                Box::new(SemiAnalytic {
+                nodes: Nodes::Stratified,
+                points,
+                vis_rays: rays,
+                replicates,
+                adaptive: true,
+            })
             }
         }
     }
@@ -106,7 +112,7 @@ impl Default for BakeConfig {
             scene: "cornell".into(),
             out_dir: PathBuf::from("out"),
             resolution: Resolution::Patches(1000),
-            estimator: EstimatorChoice::SemiAnalytic { points: 3, rays: 16, replicates: 2 },
+            estimator: EstimatorChoice::SemiAnalytic { points: 4, rays: 2, replicates: 4 },
             seed: 1,
             method: Method::GaussSeidel,
             solve: Options::default(),

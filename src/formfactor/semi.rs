@@ -71,6 +71,12 @@ pub struct SemiAnalytic {
     pub vis_rays: usize,
     /// Independent replicates (>= 2) for the standard error.
     pub replicates: usize,
+    /// With stratified nodes: size the node grid per pair to what the pair needs,
+    /// `min(points, ceil(2 d_i / r_ij))` per side, where `d_i` is the emitter's diameter and
+    /// `r_ij` the distance between centroids. The point factor varies across the emitter on
+    /// the scale `r_ij`, so distant pairs need one node per replicate and adjacent pairs
+    /// get the full grid.
+    pub adaptive: bool,
 }
 
 impl Default for SemiAnalytic {
@@ -80,8 +86,21 @@ impl Default for SemiAnalytic {
             points: 4,
             vis_rays: 4,
             replicates: 4,
+            adaptive: false,
         }
     }
+}
+
+/// Largest distance between two corners of patch `i`.
+fn diameter(p: &PatchSet, i: usize) -> f32 {
+    let (pts, k) = p.corner_points(i);
+    let mut d = 0.0f32;
+    for a in 0..k {
+        for b in a + 1..k {
+            d = d.max((pts[a] - pts[b]).length());
+        }
+    }
+    d
 }
 
 /// Corners of patch `i` in f64.
@@ -160,6 +179,7 @@ impl Estimator for SemiAnalytic {
     fn name(&self) -> String {
         let kind = match self.nodes {
             Nodes::Gauss => "semi-gauss",
+            Nodes::Stratified if self.adaptive => "semi-adaptive",
             Nodes::Stratified => "semi-stratified",
         };
         let (p, v) = (self.points, self.vis_rays);
@@ -176,6 +196,7 @@ impl Estimator for SemiAnalytic {
         let tol = 1e-6 * p.diagonal as f32;
         let n_i = p.normal[i];
         let n_x = n_i.as_dvec3();
+        let diam_i = diameter(p, i);
         // Patches that could block anything leaving i: a corner strictly in front of i.
         let others: Vec<u32> = (0..p.len())
             .filter(|&k| k != i && plane_range(p, i, k).1 > tol)
@@ -207,11 +228,17 @@ impl Estimator for SemiAnalytic {
             } else {
                 Vec::new()
             };
+            let m_ij = if self.adaptive {
+                let r = (p.centroid[j] - p.centroid[i]).length().max(f32::MIN_POSITIVE);
+                ((2.0 * diam_i / r).ceil() as usize).clamp(1, m)
+            } else {
+                m
+            };
             for (r, mean) in means.iter_mut().enumerate() {
                 let mut rng = Pcg32::keyed(ctx.seed, i as u64, j as u64, r as u64);
                 if self.nodes == Nodes::Stratified {
-                    jittered(&mut rng, m, &mut strata);
-                    let w = p.area[i] / (m * m) as f64;
+                    jittered(&mut rng, m_ij, &mut strata);
+                    let w = p.area[i] / (m_ij * m_ij) as f64;
                     nodes.clear();
                     nodes.extend(
                         strata
@@ -313,6 +340,7 @@ mod tests {
             points: 12,
             vis_rays: 4,
             replicates: 2,
+            adaptive: false,
         };
         let (f01, f10, rays) = plates("plates-parallel", &est);
         let want = parallel_rectangles(1.0, 1.0, 1.0);
@@ -337,6 +365,7 @@ mod tests {
             points: 8,
             vis_rays: 2,
             replicates: 16,
+            adaptive: false,
         };
         let scene = Scene::load("plates-perpendicular").unwrap();
         let patches = PatchSet::build(&scene, Resolution::MaxEdge(10.0)).unwrap();
@@ -370,6 +399,7 @@ mod tests {
             points: 8,
             vis_rays: 3,
             replicates: 2,
+            adaptive: false,
         };
         let ff = compute(&ctx, &est, &|_| {});
         assert!(ff.rays > 0);
@@ -397,6 +427,7 @@ mod tests {
             points: 6,
             vis_rays: 4,
             replicates: 8,
+            adaptive: false,
         };
         let mc = AreaMc {
             pattern: Pattern::Stratified,
