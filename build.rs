@@ -32,7 +32,12 @@ const CACHE_SUBDIR: &str = "embree-4.4.0";
 
 fn main() {
     println!("cargo:rerun-if-changed=build.rs");
-    for var in ["EMBREE_DIR", "RADIOSITY_EMBREE_CACHE", "XDG_CACHE_HOME", "PKG_CONFIG_PATH"] {
+    for var in [
+        "EMBREE_DIR",
+        "RADIOSITY_EMBREE_CACHE",
+        "XDG_CACHE_HOME",
+        "PKG_CONFIG_PATH",
+    ] {
         println!("cargo:rerun-if-env-changed={var}");
     }
     // docs.rs-style builds without linking (e.g. `cargo doc` on a machine without Embree).
@@ -134,7 +139,11 @@ fn provision() -> Result<PathBuf, String> {
     if !stamp.exists() {
         let _ = fs::remove_dir_all(&dir);
         if fs::rename(&work, &dir).is_err() && !dir.join("READY").exists() {
-            return Err(format!("cannot move {} to {}", work.display(), dir.display()));
+            return Err(format!(
+                "cannot move {} to {}",
+                work.display(),
+                dir.display()
+            ));
         }
     }
     let _ = fs::remove_dir_all(&work);
@@ -146,16 +155,37 @@ fn provision() -> Result<PathBuf, String> {
 fn fetch_and_unpack(work: &Path) -> Result<(), String> {
     println!("cargo:warning=provisioning Embree 4.4 from PyPI ({WHEEL_REQ}) into the cache");
     let status = Command::new("python3")
-        .args(["-m", "pip", "download", "--quiet", "--no-deps", "--only-binary=:all:"])
-        .args(["--platform", "manylinux_2_28_x86_64", "--platform", "manylinux2014_x86_64"])
-        .args(["--python-version", "3.11", "--implementation", "cp", "--abi", "cp311"])
+        .args([
+            "-m",
+            "pip",
+            "download",
+            "--quiet",
+            "--no-deps",
+            "--only-binary=:all:",
+        ])
+        .args([
+            "--platform",
+            "manylinux_2_28_x86_64",
+            "--platform",
+            "manylinux2014_x86_64",
+        ])
+        .args([
+            "--python-version",
+            "3.11",
+            "--implementation",
+            "cp",
+            "--abi",
+            "cp311",
+        ])
         .arg("-d")
         .arg(work)
         .arg(WHEEL_REQ)
         .status()
         .map_err(|e| format!("cannot run `python3 -m pip`: {e}"))?;
     if !status.success() {
-        return Err(format!("`python3 -m pip download {WHEEL_REQ}` failed ({status})"));
+        return Err(format!(
+            "`python3 -m pip download {WHEEL_REQ}` failed ({status})"
+        ));
     }
     let wheel = work.join(WHEEL_FILE);
     let digest = sha256_hex(&wheel)?;
@@ -181,13 +211,18 @@ fn fetch_and_unpack(work: &Path) -> Result<(), String> {
         fs::rename(&from, work.join(name))
             .map_err(|e| format!("cannot move {}: {e}", from.display()))?;
     }
-    let embree_name = Path::new(WHEEL_EMBREE).file_name().ok_or("bad library name")?;
+    let embree_name = Path::new(WHEEL_EMBREE)
+        .file_name()
+        .ok_or("bad library name")?;
     std::os::unix::fs::symlink(embree_name, work.join("libembree4.so"))
         .map_err(|e| format!("cannot link libembree4.so: {e}"))?;
     let _ = fs::remove_dir_all(&unpack);
     let _ = fs::remove_file(&wheel);
-    fs::write(work.join("READY"), format!("{WHEEL_REQ}\nsha256 {WHEEL_SHA256}\n"))
-        .map_err(|e| format!("cannot write the stamp: {e}"))
+    fs::write(
+        work.join("READY"),
+        format!("{WHEEL_REQ}\nsha256 {WHEEL_SHA256}\n"),
+    )
+    .map_err(|e| format!("cannot write the stamp: {e}"))
 }
 
 /// Lower-case hex sha256 of a file.
@@ -197,11 +232,17 @@ fn sha256_hex(path: &Path) -> Result<String, String> {
     let mut hasher = Sha256::new();
     let mut buf = vec![0u8; 1 << 16];
     loop {
-        let n = file.read(&mut buf).map_err(|e| format!("{}: {e}", path.display()))?;
+        let n = file
+            .read(&mut buf)
+            .map_err(|e| format!("{}: {e}", path.display()))?;
         if n == 0 {
             break;
         }
         hasher.update(&buf[..n]);
     }
-    Ok(hasher.finalize().iter().map(|b| format!("{b:02x}")).collect())
+    Ok(hasher
+        .finalize()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect())
 }

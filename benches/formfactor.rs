@@ -37,7 +37,11 @@ fn record(est: &AreaMc, ctx: &Context) -> Vec<Ray> {
 
 fn raw_loop(vis: &Visibility, rays: &[Ray]) -> usize {
     rays.par_chunks(4096)
-        .map(|ch| ch.iter().filter(|r| vis.raw().occluded1(r.0, r.1, 0.0, r.2)).count())
+        .map(|ch| {
+            ch.iter()
+                .filter(|r| vis.raw().occluded1(r.0, r.1, 0.0, r.2))
+                .count()
+        })
         .sum()
 }
 
@@ -45,7 +49,11 @@ fn bench(c: &mut Criterion) {
     let scene = Scene::load("cornell").expect("built-in scene");
     let patches = PatchSet::build(&scene, Resolution::Patches(400)).expect("patches");
     let vis = Visibility::new(&patches).expect("embree");
-    let ctx = Context { patches: &patches, vis: &vis, seed: 1 };
+    let ctx = Context {
+        patches: &patches,
+        vis: &vis,
+        seed: 1,
+    };
     let est = AreaMc::default();
     let rays = record(&est, &ctx);
 
@@ -76,7 +84,9 @@ fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("form factors");
     g.sample_size(10);
     g.throughput(Throughput::Elements(rays.len() as u64));
-    g.bench_function("area-stratified", |b| b.iter(|| compute(&ctx, &est, &|_| {})));
+    g.bench_function("area-stratified", |b| {
+        b.iter(|| compute(&ctx, &est, &|_| {}))
+    });
     g.bench_function("raw rtcOccluded1", |b| b.iter(|| raw_loop(&vis, &rays)));
     g.finish();
 }

@@ -16,7 +16,11 @@ use radiosity::scene::builtin;
 use radiosity::solve::{Method, Options};
 
 #[derive(Parser, Debug)]
-#[command(name = "radiosity", version, about = "Monte Carlo radiosity form factors on Embree 4, solved and baked into OpenEXR")]
+#[command(
+    name = "radiosity",
+    version,
+    about = "Monte Carlo radiosity form factors on Embree 4, solved and baked into OpenEXR"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -78,7 +82,7 @@ struct FactorArgs {
     #[arg(long, value_enum, default_value_t = EstimatorArg::Semi)]
     estimator: EstimatorArg,
     /// Samples per side: emitter points per side (semi) or strata per side (area estimators).
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 3)]
     samples: usize,
     /// Visibility strata per side for each emitter point (semi estimator): rays² rays.
     #[arg(long, default_value_t = 2)]
@@ -100,7 +104,10 @@ impl FactorArgs {
             bail!("--samples must be between 1 and 256, got {}", self.samples);
         }
         if self.replicates < 2 {
-            bail!("--replicates must be at least 2 (standard errors need two), got {}", self.replicates);
+            bail!(
+                "--replicates must be at least 2 (standard errors need two), got {}",
+                self.replicates
+            );
         }
         if self.rays == 0 {
             bail!("--rays must be at least 1");
@@ -111,15 +118,18 @@ impl FactorArgs {
                 rays: self.rays,
                 replicates: self.replicates,
             },
-            EstimatorArg::Stratified => {
-                EstimatorChoice::AreaStratified { strata: self.samples, replicates: self.replicates }
-            }
-            EstimatorArg::Hemisphere => {
-                EstimatorChoice::Hemisphere { strata: self.samples, replicates: self.replicates }
-            }
-            EstimatorArg::Uniform => {
-                EstimatorChoice::AreaUniform { strata: self.samples, replicates: self.replicates }
-            }
+            EstimatorArg::Stratified => EstimatorChoice::AreaStratified {
+                strata: self.samples,
+                replicates: self.replicates,
+            },
+            EstimatorArg::Hemisphere => EstimatorChoice::Hemisphere {
+                strata: self.samples,
+                replicates: self.replicates,
+            },
+            EstimatorArg::Uniform => EstimatorChoice::AreaUniform {
+                strata: self.samples,
+                replicates: self.replicates,
+            },
         })
     }
 
@@ -224,9 +234,15 @@ impl Observer for Bars {
 }
 
 fn parse_size(s: &str) -> Result<(u32, u32)> {
-    let (w, h) = s.split_once('x').with_context(|| format!("--size `{s}`: expected WIDTHxHEIGHT, e.g. 512x512"))?;
-    let w: u32 = w.parse().with_context(|| format!("--size `{s}`: bad width"))?;
-    let h: u32 = h.parse().with_context(|| format!("--size `{s}`: bad height"))?;
+    let (w, h) = s
+        .split_once('x')
+        .with_context(|| format!("--size `{s}`: expected WIDTHxHEIGHT, e.g. 512x512"))?;
+    let w: u32 = w
+        .parse()
+        .with_context(|| format!("--size `{s}`: bad width"))?;
+    let h: u32 = h
+        .parse()
+        .with_context(|| format!("--size `{s}`: bad height"))?;
     if !(16..=8192).contains(&w) || !(16..=8192).contains(&h) {
         bail!("--size `{s}`: each side must be between 16 and 8192 pixels");
     }
@@ -269,7 +285,10 @@ fn bake(args: &BakeArgs) -> Result<()> {
         crease_deg: 30.0,
         factors: args.factors.clone(),
     };
-    let bars = Bars { bar: Mutex::new(None), tty: std::io::stderr().is_terminal() };
+    let bars = Bars {
+        bar: Mutex::new(None),
+        tty: std::io::stderr().is_terminal(),
+    };
     let summary = pipeline::bake(&cfg, &bars)?;
     print!("{}", pipeline::format_summary(&summary));
     Ok(())
@@ -282,7 +301,10 @@ pub fn run() -> Result<()> {
         Command::Bake(args) => bake(args),
         Command::Factors(args) => {
             args.factors.init_threads()?;
-            let bars = Bars { bar: Mutex::new(None), tty: std::io::stderr().is_terminal() };
+            let bars = Bars {
+                bar: Mutex::new(None),
+                tty: std::io::stderr().is_terminal(),
+            };
             let s = pipeline::factors(
                 &args.scene,
                 args.mesh.resolution()?,
@@ -299,9 +321,15 @@ pub fn run() -> Result<()> {
             );
             println!(
                 "row sums in [{:.5}, {:.5}], reciprocity error <= {:.1e}; peak memory {}",
-                d.min_row_sum, d.max_row_sum, d.reciprocity, pipeline::mib(s.peak_memory)
+                d.min_row_sum,
+                d.max_row_sum,
+                d.reciprocity,
+                pipeline::mib(s.peak_memory)
             );
-            println!("wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json}}", args.output.display());
+            println!(
+                "wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json}}",
+                args.output.display()
+            );
             Ok(())
         }
         Command::Scenes => {

@@ -81,7 +81,15 @@ impl FormFactors {
             indptr.push(indices.len());
         }
         let f = CsMat::new((n, n), indptr, indices, data);
-        FormFactors { f, se, area, rays, seconds, estimator, seed }
+        FormFactors {
+            f,
+            se,
+            area,
+            rays,
+            seconds,
+            estimator,
+            seed,
+        }
     }
 
     /// Number of patches.
@@ -106,7 +114,10 @@ impl FormFactors {
 
     /// Sum of row `i`.
     pub fn row_sum(&self, i: usize) -> f64 {
-        self.f.outer_view(i).map(|r| r.data().iter().sum()).unwrap_or(0.0)
+        self.f
+            .outer_view(i)
+            .map(|r| r.data().iter().sum())
+            .unwrap_or(0.0)
     }
 
     /// Standard error of the sum of row `i` (entries' errors added in quadrature).

@@ -9,7 +9,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use crate::error::{Error, Result};
-use crate::formfactor::{self, AreaMc, Context, Estimator, Hemisphere, Nodes, Pattern, SemiAnalytic};
+use crate::formfactor::{
+    self, AreaMc, Context, Estimator, Hemisphere, Nodes, Pattern, SemiAnalytic,
+};
 use crate::matrix::{Diagnostics, FormFactors};
 use crate::mesh::{PatchSet, Resolution};
 use crate::output::{self, Exposure};
@@ -57,24 +59,29 @@ impl EstimatorChoice {
     /// Builds the estimator.
     pub fn build(&self) -> Box<dyn Estimator> {
         match *self {
-            EstimatorChoice::AreaStratified { strata, replicates } => {
-                Box::new(AreaMc { pattern: Pattern::Stratified, strata, replicates })
-            }
-            EstimatorChoice::AreaUniform { strata, replicates } => {
-                Box::new(AreaMc { pattern: Pattern::Uniform, strata, replicates })
-            }
+            EstimatorChoice::AreaStratified { strata, replicates } => Box::new(AreaMc {
+                pattern: Pattern::Stratified,
+                strata,
+                replicates,
+            }),
+            EstimatorChoice::AreaUniform { strata, replicates } => Box::new(AreaMc {
+                pattern: Pattern::Uniform,
+                strata,
+                replicates,
+            }),
             EstimatorChoice::Hemisphere { strata, replicates } => {
                 Box::new(Hemisphere { strata, replicates })
             }
-            EstimatorChoice::SemiAnalytic { points, rays, replicates } => {
-                Box::new(SemiAnalytic {
-                nodes: Nodes::Stratified,
+            EstimatorChoice::SemiAnalytic {
+                points,
+                rays,
+                replicates,
+            } => Box::new(SemiAnalytic {
+                nodes: Nodes::Gauss,
                 points,
                 vis_rays: rays,
                 replicates,
-                adaptive: true,
-            })
-            }
+            }),
         }
     }
 }
@@ -112,7 +119,11 @@ impl Default for BakeConfig {
             scene: "cornell".into(),
             out_dir: PathBuf::from("out"),
             resolution: Resolution::Patches(1000),
-            estimator: EstimatorChoice::SemiAnalytic { points: 4, rays: 2, replicates: 4 },
+            estimator: EstimatorChoice::SemiAnalytic {
+                points: 3,
+                rays: 2,
+                replicates: 4,
+            },
             seed: 1,
             method: Method::GaussSeidel,
             solve: Options::default(),
@@ -183,7 +194,11 @@ pub struct BakeSummary {
 impl BakeSummary {
     /// Seconds of the form-factor stage.
     pub fn stage_seconds(&self, stage: &str) -> f64 {
-        self.stages.iter().filter(|s| s.stage == stage).map(|s| s.seconds).sum()
+        self.stages
+            .iter()
+            .filter(|s| s.stage == stage)
+            .map(|s| s.seconds)
+            .sum()
     }
 }
 
@@ -192,9 +207,11 @@ pub fn peak_memory() -> u64 {
     std::fs::read_to_string("/proc/self/status")
         .ok()
         .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse::<u64>().ok()))
+            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| {
+                l.split_whitespace()
+                    .nth(1)
+                    .and_then(|v| v.parse::<u64>().ok())
+            })
         })
         .map(|kb| kb * 1024)
         .unwrap_or(0)
@@ -224,11 +241,18 @@ pub fn form_factors(
     seed: u64,
     obs: &dyn Observer,
 ) -> Result<(FormFactors, Vec<StageTime>, String)> {
-    let mut timer = Timer { obs, stages: Vec::new() };
+    let mut timer = Timer {
+        obs,
+        stages: Vec::new(),
+    };
     let vis = timer.run("bvh", 0, || Visibility::new(patches))?;
     let embree = vis.raw().version();
     let est = estimator.build();
-    let ctx = Context { patches, vis: &vis, seed };
+    let ctx = Context {
+        patches,
+        vis: &vis,
+        seed,
+    };
     let ff = timer.run("form factors", patches.len() as u64, || {
         formfactor::compute(&ctx, est.as_ref(), &|d| obs.advance(d))
     });
@@ -250,7 +274,10 @@ pub fn solve_radiosity(
 
 /// Runs the whole bake and writes `radiosity.exr`, `mesh.ply` and `preview.png`.
 pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
-    let mut timer = Timer { obs, stages: Vec::new() };
+    let mut timer = Timer {
+        obs,
+        stages: Vec::new(),
+    };
     let scene = timer.run("load", 0, || Scene::load(&cfg.scene))?;
     scene.require_emitter()?;
     let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
@@ -259,7 +286,10 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         Ok(p)
     })?;
     let (ff, embree) = match &cfg.factors {
-        Some(dir) => (timer.run("read factors", 0, || store::read(dir, &patches))?, String::from("not used")),
+        Some(dir) => (
+            timer.run("read factors", 0, || store::read(dir, &patches))?,
+            String::from("not used"),
+        ),
         None => {
             let (ff, stages, embree) = form_factors(&patches, &cfg.estimator, cfg.seed, obs)?;
             timer.stages.extend(stages);
@@ -267,16 +297,21 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         }
     };
     let diagnostics = ff.diagnostics();
-    let max_row_sum_stderr = (0..ff.len()).map(|i| ff.row_sum_stderr(i)).fold(0.0, f64::max);
-    let (b, report) =
-        timer.run("solve", 0, || solve_radiosity(&patches, &ff, cfg.method, &cfg.solve))?;
+    let max_row_sum_stderr = (0..ff.len())
+        .map(|i| ff.row_sum_stderr(i))
+        .fold(0.0, f64::max);
+    let (b, report) = timer.run("solve", 0, || {
+        solve_radiosity(&patches, &ff, cfg.method, &cfg.solve)
+    })?;
     if let Some(k) = b.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
         return Err(Error::Scene {
             scene: scene.source.clone(),
             msg: format!("the solve produced a non-finite radiosity at patch {k}"),
         });
     }
-    let verts = timer.run("per-vertex", 0, || output::interpolate(&patches, &b, cfg.crease_deg));
+    let verts = timer.run("per-vertex", 0, || {
+        output::interpolate(&patches, &b, cfg.crease_deg)
+    });
     std::fs::create_dir_all(&cfg.out_dir).map_err(|e| Error::io(&cfg.out_dir, e))?;
     let files = timer.run("write", 0, || -> Result<Vec<PathBuf>> {
         let exr = cfg.out_dir.join("radiosity.exr");
@@ -330,7 +365,10 @@ pub fn factors(
     out_dir: &std::path::Path,
     obs: &dyn Observer,
 ) -> Result<FactorsSummary> {
-    let mut timer = Timer { obs, stages: Vec::new() };
+    let mut timer = Timer {
+        obs,
+        stages: Vec::new(),
+    };
     let scene = timer.run("load", 0, || Scene::load(scene))?;
     let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
         let p = PatchSet::build(&scene, resolution)?;
@@ -341,7 +379,12 @@ pub fn factors(
     timer.stages.extend(stages);
     let diagnostics = ff.diagnostics();
     let provenance = timer.run("write", 0, || store::write(out_dir, &patches, &ff))?;
-    Ok(FactorsSummary { provenance, diagnostics, stages: timer.stages, peak_memory: peak_memory() })
+    Ok(FactorsSummary {
+        provenance,
+        diagnostics,
+        stages: timer.stages,
+        peak_memory: peak_memory(),
+    })
 }
 
 /// Formats bytes as MiB with one decimal.
@@ -355,7 +398,11 @@ pub fn format_summary(s: &BakeSummary) -> String {
     let mut o = String::new();
     let ff_s = s.stage_seconds("form factors");
     let total: f64 = s.stages.iter().map(|t| t.seconds).sum();
-    let _ = writeln!(o, "baked `{}`: {} patches, {} triangles, {} vertices", s.scene, s.patches, s.triangles, s.vertices);
+    let _ = writeln!(
+        o,
+        "baked `{}`: {} patches, {} triangles, {} vertices",
+        s.scene, s.patches, s.triangles, s.vertices
+    );
     let _ = writeln!(
         o,
         "form factors: {} ({} rays, {:.2} Mrays/s, Embree {})",
@@ -382,7 +429,11 @@ pub fn format_summary(s: &BakeSummary) -> String {
         s.solve.solver,
         s.solve.iterations,
         s.solve.residual,
-        if s.solve.converged { "" } else { " (NOT converged)" }
+        if s.solve.converged {
+            ""
+        } else {
+            " (NOT converged)"
+        }
     );
     let _ = write!(o, "time:");
     for t in &s.stages {

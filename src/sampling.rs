@@ -27,7 +27,10 @@ impl Pcg32 {
     /// A stream keyed on a seed and up to three integers.
     pub fn keyed(seed: u64, a: u64, b: u64, c: u64) -> Pcg32 {
         let k = mix64(seed ^ mix64(a ^ mix64(b ^ mix64(c))));
-        let mut r = Pcg32 { state: 0, inc: (mix64(k ^ 0xDA94_2042_E4DD_58B5) << 1) | 1 };
+        let mut r = Pcg32 {
+            state: 0,
+            inc: (mix64(k ^ 0xDA94_2042_E4DD_58B5) << 1) | 1,
+        };
         r.next_u32();
         r.state = r.state.wrapping_add(k);
         r.next_u32();
@@ -38,7 +41,9 @@ impl Pcg32 {
     #[inline]
     pub fn next_u32(&mut self) -> u32 {
         let old = self.state;
-        self.state = old.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(self.inc);
+        self.state = old
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(self.inc);
         let xorshifted = (((old >> 18) ^ old) >> 27) as u32;
         let rot = (old >> 59) as u32;
         xorshifted.rotate_right(rot)
@@ -66,7 +71,10 @@ pub fn jittered(rng: &mut Pcg32, s: usize, out: &mut Vec<(f64, f64)>) {
     let inv = 1.0 / s as f64;
     for b in 0..s {
         for a in 0..s {
-            out.push(((a as f64 + rng.next_f64()) * inv, (b as f64 + rng.next_f64()) * inv));
+            out.push((
+                (a as f64 + rng.next_f64()) * inv,
+                (b as f64 + rng.next_f64()) * inv,
+            ));
         }
     }
 }
@@ -85,18 +93,24 @@ mod tests {
 
     #[test]
     fn streams_differ_and_repeat() {
-        let a: Vec<u32> = (0..4).map({
-            let mut r = Pcg32::keyed(1, 2, 3, 4);
-            move |_| r.next_u32()
-        }).collect();
-        let b: Vec<u32> = (0..4).map({
-            let mut r = Pcg32::keyed(1, 2, 3, 4);
-            move |_| r.next_u32()
-        }).collect();
-        let c: Vec<u32> = (0..4).map({
-            let mut r = Pcg32::keyed(1, 3, 2, 4);
-            move |_| r.next_u32()
-        }).collect();
+        let a: Vec<u32> = (0..4)
+            .map({
+                let mut r = Pcg32::keyed(1, 2, 3, 4);
+                move |_| r.next_u32()
+            })
+            .collect();
+        let b: Vec<u32> = (0..4)
+            .map({
+                let mut r = Pcg32::keyed(1, 2, 3, 4);
+                move |_| r.next_u32()
+            })
+            .collect();
+        let c: Vec<u32> = (0..4)
+            .map({
+                let mut r = Pcg32::keyed(1, 3, 2, 4);
+                move |_| r.next_u32()
+            })
+            .collect();
         assert_eq!(a, b);
         assert_ne!(a, c);
     }
@@ -109,7 +123,10 @@ mod tests {
         let mean = xs.iter().sum::<f64>() / n as f64;
         let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n as f64;
         // Standard error of the mean is sqrt(1/12 / n) = 6.5e-4; 5 sigma.
-        assert!((mean - 0.5).abs() < 5.0 * (1.0f64 / 12.0 / n as f64).sqrt(), "{mean}");
+        assert!(
+            (mean - 0.5).abs() < 5.0 * (1.0f64 / 12.0 / n as f64).sqrt(),
+            "{mean}"
+        );
         assert!((var - 1.0 / 12.0).abs() < 2e-3, "{var}");
     }
 }

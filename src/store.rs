@@ -74,7 +74,13 @@ fn write_mtx(path: &Path, ff: &FormFactors, values: &[f64]) -> Result<()> {
         let n = ff.len();
         let io = |e| Error::io(path, e);
         writeln!(w, "%%MatrixMarket matrix coordinate real general").map_err(io)?;
-        writeln!(w, "% radiosity {}: {}", env!("CARGO_PKG_VERSION"), ff.estimator).map_err(io)?;
+        writeln!(
+            w,
+            "% radiosity {}: {}",
+            env!("CARGO_PKG_VERSION"),
+            ff.estimator
+        )
+        .map_err(io)?;
         writeln!(w, "{n} {n} {}", ff.f.nnz()).map_err(io)?;
         let mut k = 0;
         for (i, row) in ff.f.outer_iterator().enumerate() {
@@ -92,21 +98,34 @@ pub fn write(dir: &Path, patches: &PatchSet, ff: &FormFactors) -> Result<Provena
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     write_mtx(&dir.join("F.mtx"), ff, ff.f.data())?;
     write_mtx(&dir.join("stderr.mtx"), ff, &ff.se)?;
-    let mut csv = String::from(
-        "id,area,cx,cy,cz,nx,ny,nz,material,rho_r,rho_g,rho_b,e_r,e_g,e_b\n",
-    );
+    let mut csv =
+        String::from("id,area,cx,cy,cz,nx,ny,nz,material,rho_r,rho_g,rho_b,e_r,e_g,e_b\n");
     for i in 0..patches.len() {
         let (c, n) = (patches.centroid[i], patches.normal[i]);
         let m = &patches.materials[patches.material[i] as usize];
         let _ = writeln!(
             csv,
             "{i},{:e},{},{},{},{},{},{},{},{},{},{},{},{},{}",
-            patches.area[i], c.x, c.y, c.z, n.x, n.y, n.z,
-            m.name.replace(',', "_"), m.rho[0], m.rho[1], m.rho[2], m.emit[0], m.emit[1], m.emit[2]
+            patches.area[i],
+            c.x,
+            c.y,
+            c.z,
+            n.x,
+            n.y,
+            n.z,
+            m.name.replace(',', "_"),
+            m.rho[0],
+            m.rho[1],
+            m.rho[2],
+            m.emit[0],
+            m.emit[1],
+            m.emit[2]
         );
     }
     let csv_path = dir.join("patches.csv");
-    write_atomic(&csv_path, |tmp| std::fs::write(tmp, &csv).map_err(|e| Error::io(tmp, e)))?;
+    write_atomic(&csv_path, |tmp| {
+        std::fs::write(tmp, &csv).map_err(|e| Error::io(tmp, e))
+    })?;
     let prov = Provenance {
         writer: format!("radiosity {}", env!("CARGO_PKG_VERSION")),
         scene: patches.scene.clone(),
@@ -123,7 +142,9 @@ pub fn write(dir: &Path, patches: &PatchSet, ff: &FormFactors) -> Result<Provena
         msg: e.to_string(),
     })?;
     let prov_path = dir.join("provenance.json");
-    write_atomic(&prov_path, |tmp| std::fs::write(tmp, &json).map_err(|e| Error::io(tmp, e)))?;
+    write_atomic(&prov_path, |tmp| {
+        std::fs::write(tmp, &json).map_err(|e| Error::io(tmp, e))
+    })?;
     Ok(prov)
 }
 
@@ -136,7 +157,11 @@ fn read_mtx(path: &Path, n: usize) -> Result<sprs::TriMat<f64>> {
     if m.rows() != n || m.cols() != n {
         return Err(Error::Mismatch {
             path: path.to_path_buf(),
-            msg: format!("matrix is {}x{}, the scene has {n} patches", m.rows(), m.cols()),
+            msg: format!(
+                "matrix is {}x{}, the scene has {n} patches",
+                m.rows(),
+                m.cols()
+            ),
         });
     }
     Ok(m)
@@ -157,7 +182,9 @@ pub fn read(dir: &Path, patches: &PatchSet) -> Result<FormFactors> {
             msg: format!(
                 "factors were computed for {} patches of `{}`; this scene has {} patches \
                  (use the same scene and --patches/--max-edge)",
-                prov.patches, prov.scene, patches.len()
+                prov.patches,
+                prov.scene,
+                patches.len()
             ),
         });
     }
@@ -187,7 +214,10 @@ pub fn read(dir: &Path, patches: &PatchSet) -> Result<FormFactors> {
         return Err(Error::Parse {
             path: dir.join("F.mtx"),
             line: None,
-            msg: format!("entry {k} is {} (form factors are finite and >= 0)", f.data()[k]),
+            msg: format!(
+                "entry {k} is {} (form factors are finite and >= 0)",
+                f.data()[k]
+            ),
         });
     }
     Ok(FormFactors {

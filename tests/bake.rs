@@ -30,7 +30,11 @@ fn cornell_bake_writes_files_and_bleeds_colour() {
     let bake = output::read_exr(&dir.join("radiosity.exr")).expect("EXR reads back");
     assert_eq!(bake.scene, "cornell");
     assert_eq!(bake.rgb.len(), summary.vertices);
-    assert!(bake.rgb.iter().flatten().all(|c| c.is_finite() && *c >= 0.0));
+    assert!(bake
+        .rgb
+        .iter()
+        .flatten()
+        .all(|c| c.is_finite() && *c >= 0.0));
 
     // Colour bleeding: on the white back wall (z = 559.2), the red/green ratio is higher
     // next to the red wall (x near 556) than next to the green wall (x near 0).
@@ -49,7 +53,10 @@ fn cornell_bake_writes_files_and_bleeds_colour() {
     };
     let (red_side, green_side) = (ratio(true), ratio(false));
     eprintln!("back wall R/G: near red wall {red_side:.3}, near green wall {green_side:.3}");
-    assert!(red_side > 1.15 * green_side, "no visible bleeding: {red_side} vs {green_side}");
+    assert!(
+        red_side > 1.15 * green_side,
+        "no visible bleeding: {red_side} vs {green_side}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 

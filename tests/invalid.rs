@@ -25,7 +25,11 @@ fn invalid_scenes() -> Vec<(PathBuf, String)> {
         out.push((path, expect));
     }
     out.sort();
-    assert!(out.len() >= 10, "expected the invalid-input collection, found {}", out.len());
+    assert!(
+        out.len() >= 10,
+        "expected the invalid-input collection, found {}",
+        out.len()
+    );
     out
 }
 
@@ -44,7 +48,11 @@ fn library_refuses_each_invalid_scene_with_its_message() {
             .unwrap_or_else(|| panic!("{} was accepted", path.display()))
             .to_string();
         eprintln!("{}: {err}", path.file_name().unwrap().to_string_lossy());
-        assert!(err.contains(&expect), "{}:\n  got:      {err}\n  expected: {expect}", path.display());
+        assert!(
+            err.contains(&expect),
+            "{}:\n  got:      {err}\n  expected: {expect}",
+            path.display()
+        );
     }
 }
 
@@ -56,8 +64,14 @@ fn command_line_reports_errors_without_panicking() {
         .into_iter()
         .map(|(p, e)| (p.display().to_string(), e))
         .collect();
-    cases.push(("no-such-scene".into(), "no built-in scene `no-such-scene`".into()));
-    cases.push(("/nonexistent/box.obj".into(), "/nonexistent/box.obj: No such file".into()));
+    cases.push((
+        "no-such-scene".into(),
+        "no built-in scene `no-such-scene`".into(),
+    ));
+    cases.push((
+        "/nonexistent/box.obj".into(),
+        "/nonexistent/box.obj: No such file".into(),
+    ));
     for (scene, expect) in cases {
         let out = Command::new(bin)
             .args(["bake", &scene, "--patches", "10", "-o"])
@@ -68,7 +82,13 @@ fn command_line_reports_errors_without_panicking() {
         assert!(!out.status.success(), "{scene}: exit status was success");
         assert_eq!(out.status.code(), Some(1), "{scene}: {stderr}");
         assert!(!stderr.contains("panicked"), "{scene}: {stderr}");
-        assert!(stderr.contains(&expect), "{scene}:\n  got:      {stderr}\n  expected: {expect}");
+        assert!(
+            stderr.contains(&expect),
+            "{scene}:\n  got:      {stderr}\n  expected: {expect}"
+        );
     }
-    assert!(!out_dir.join("radiosity.exr").exists(), "no output may be written for bad input");
+    assert!(
+        !out_dir.join("radiosity.exr").exists(),
+        "no output may be written for bad input"
+    );
 }

@@ -10,10 +10,22 @@ use radiosity::solve::{Method, Options};
 /// (rho_A, rho_B, rho_C), (E_A, E_B, E_C), (B_A, B_B, B_C) as printed in the notes
 /// (row 4's B_B restored to 1.02906, see NOTES.md).
 const TABLE: [([f64; 3], [f64; 3], [f64; 3]); 4] = [
-    ([0.0, 0.5, 1.0 / 3.0], [1.0, 0.0, 0.0], [1.0, 0.11660, 0.10354]),
-    ([0.1, 0.5, 1.0 / 3.0], [1.0, 0.0, 0.0], [1.00709, 0.11743, 0.10428]),
+    (
+        [0.0, 0.5, 1.0 / 3.0],
+        [1.0, 0.0, 0.0],
+        [1.0, 0.11660, 0.10354],
+    ),
+    (
+        [0.1, 0.5, 1.0 / 3.0],
+        [1.0, 0.0, 0.0],
+        [1.00709, 0.11743, 0.10428],
+    ),
     ([0.5, 0.0, 0.5], [0.0, 1.0, 0.0], [0.21133, 1.0, 0.21133]),
-    ([0.1, 0.1, 0.5], [1.0, 1.0, 0.0], [1.04647, 1.02906, 0.32853]),
+    (
+        [0.1, 0.1, 0.5],
+        [1.0, 1.0, 0.0],
+        [1.04647, 1.02906, 0.32853],
+    ),
 ];
 
 #[test]
@@ -42,16 +54,26 @@ fn middle_slice_reproduces_the_notes_table() {
     let ids = [middle("A"), middle("B"), middle("C")];
     for (row, (rho, emit, expected)) in TABLE.iter().enumerate() {
         for (k, name) in ["A", "B", "C"].iter().enumerate() {
-            scene.set_material(name, [rho[k]; 3], [emit[k]; 3]).expect("valid material");
+            scene
+                .set_material(name, [rho[k]; 3], [emit[k]; 3])
+                .expect("valid material");
         }
-        let patches = PatchSet { materials: scene.materials.clone(), ..patches.clone() };
+        let patches = PatchSet {
+            materials: scene.materials.clone(),
+            ..patches.clone()
+        };
         let (b, report) =
             pipeline::solve_radiosity(&patches, &ff, Method::GaussSeidel, &Options::default())
                 .expect("solve");
         assert!(report.converged);
         for k in 0..3 {
             let got = b[ids[k]][0];
-            eprintln!("row {} B_{}: {got:.5} (notes {:.5})", row + 1, ["A", "B", "C"][k], expected[k]);
+            eprintln!(
+                "row {} B_{}: {got:.5} (notes {:.5})",
+                row + 1,
+                ["A", "B", "C"][k],
+                expected[k]
+            );
             assert!(
                 (got - expected[k]).abs() <= 2e-3,
                 "row {}: B_{} = {got:.5}, the notes give {:.5}",

@@ -47,7 +47,11 @@ pub struct AreaMc {
 
 impl Default for AreaMc {
     fn default() -> Self {
-        AreaMc { pattern: Pattern::Stratified, strata: 4, replicates: 4 }
+        AreaMc {
+            pattern: Pattern::Stratified,
+            strata: 4,
+            replicates: 4,
+        }
     }
 }
 
@@ -73,7 +77,10 @@ impl Estimator for AreaMc {
             Pattern::Uniform => "area-uniform",
             Pattern::Stratified => "area-stratified",
         };
-        format!("{kind}(pairs={}x{}x{})", self.strata, self.strata, self.replicates)
+        format!(
+            "{kind}(pairs={}x{}x{})",
+            self.strata, self.strata, self.replicates
+        )
     }
 
     fn upper_only(&self) -> bool {
@@ -82,7 +89,9 @@ impl Estimator for AreaMc {
 
     fn row(&self, ctx: &Context, a: usize, row: &mut Row) {
         let vis = ctx.vis;
-        self.row_with(ctx, a, row, &mut |x, n_x, y, n_y| vis.segment_visible(x, n_x, y, n_y));
+        self.row_with(ctx, a, row, &mut |x, n_x, y, n_y| {
+            vis.segment_visible(x, n_x, y, n_y)
+        });
     }
 }
 
@@ -143,7 +152,11 @@ impl AreaMc {
                 let var = means.iter().map(|v| (v - avg).powi(2)).sum::<f64>() / (reps - 1) as f64;
                 let se = (var / reps as f64).sqrt();
                 let area_b = p.area[b];
-                row.entries.push(Entry { j: b as u32, f: avg * area_b, se: se * area_b });
+                row.entries.push(Entry {
+                    j: b as u32,
+                    f: avg * area_b,
+                    se: se * area_b,
+                });
             }
         }
     }

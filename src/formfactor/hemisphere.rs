@@ -30,7 +30,10 @@ pub struct Hemisphere {
 
 impl Default for Hemisphere {
     fn default() -> Self {
-        Hemisphere { strata: 16, replicates: 4 }
+        Hemisphere {
+            strata: 16,
+            replicates: 4,
+        }
     }
 }
 
@@ -57,7 +60,10 @@ pub fn cosine_direction(u: f64, v: f64) -> Vec3 {
     } else if a.abs() > b.abs() {
         (a, std::f64::consts::FRAC_PI_4 * (b / a))
     } else {
-        (b, std::f64::consts::FRAC_PI_2 - std::f64::consts::FRAC_PI_4 * (a / b))
+        (
+            b,
+            std::f64::consts::FRAC_PI_2 - std::f64::consts::FRAC_PI_4 * (a / b),
+        )
     };
     let (x, y) = (r * phi.cos(), r * phi.sin());
     let z = (1.0 - x * x - y * y).max(0.0).sqrt();
@@ -66,7 +72,10 @@ pub fn cosine_direction(u: f64, v: f64) -> Vec3 {
 
 impl Estimator for Hemisphere {
     fn name(&self) -> String {
-        format!("hemisphere(rays={}x{}x{})", self.strata, self.strata, self.replicates)
+        format!(
+            "hemisphere(rays={}x{}x{})",
+            self.strata, self.strata, self.replicates
+        )
     }
 
     fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
@@ -114,7 +123,11 @@ impl Estimator for Hemisphere {
             let means: Vec<f64> = counts.iter().map(|&c| c as f64 * inv_m).collect();
             let avg = means.iter().sum::<f64>() / reps as f64;
             let var = means.iter().map(|v| (v - avg).powi(2)).sum::<f64>() / (reps - 1) as f64;
-            row.entries.push(Entry { j, f: avg, se: (var / reps as f64).sqrt() });
+            row.entries.push(Entry {
+                j,
+                f: avg,
+                se: (var / reps as f64).sqrt(),
+            });
         }
     }
 }
@@ -125,7 +138,12 @@ mod tests {
 
     #[test]
     fn basis_is_orthonormal() {
-        for n in [Vec3::Z, -Vec3::Z, Vec3::X, Vec3::new(0.3, -0.5, 0.8).normalize()] {
+        for n in [
+            Vec3::Z,
+            -Vec3::Z,
+            Vec3::X,
+            Vec3::new(0.3, -0.5, 0.8).normalize(),
+        ] {
             let (t, b) = basis(n);
             assert!(t.dot(b).abs() < 1e-6 && t.dot(n).abs() < 1e-6 && b.dot(n).abs() < 1e-6);
             assert!((t.length() - 1.0).abs() < 1e-6 && (b.length() - 1.0).abs() < 1e-6);
@@ -137,10 +155,14 @@ mod tests {
         // E[cos θ] under p = cos θ / π is 2/3.
         let mut rng = Pcg32::keyed(3, 0, 0, 0);
         let n = 100_000;
-        let mean: f64 =
-            (0..n).map(|_| cosine_direction(rng.next_f64(), rng.next_f64()).z as f64).sum::<f64>()
-                / n as f64;
+        let mean: f64 = (0..n)
+            .map(|_| cosine_direction(rng.next_f64(), rng.next_f64()).z as f64)
+            .sum::<f64>()
+            / n as f64;
         // Var[cos] = 1/2 - 4/9 = 1/18; 5 sigma.
-        assert!((mean - 2.0 / 3.0).abs() < 5.0 * (1.0 / 18.0 / n as f64).sqrt(), "{mean}");
+        assert!(
+            (mean - 2.0 / 3.0).abs() < 5.0 * (1.0 / 18.0 / n as f64).sqrt(),
+            "{mean}"
+        );
     }
 }

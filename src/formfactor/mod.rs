@@ -74,11 +74,7 @@ pub trait Estimator: Sync {
 }
 
 /// Computes the whole matrix with `est`, calling `progress(rows_done)` now and then.
-pub fn compute(
-    ctx: &Context,
-    est: &dyn Estimator,
-    progress: &(dyn Fn(u64) + Sync),
-) -> FormFactors {
+pub fn compute(ctx: &Context, est: &dyn Estimator, progress: &(dyn Fn(u64) + Sync)) -> FormFactors {
     let start = Instant::now();
     let n = ctx.patches.len();
     let done = AtomicU64::new(0);
@@ -105,7 +101,11 @@ pub fn compute(
             for e in row {
                 let j = e.j as usize;
                 let s = area[i] / area[j];
-                mirrored[j].push(Entry { j: i as u32, f: e.f * s, se: e.se * s });
+                mirrored[j].push(Entry {
+                    j: i as u32,
+                    f: e.f * s,
+                    se: e.se * s,
+                });
             }
         }
         for (row, extra) in triplets.iter_mut().zip(mirrored) {

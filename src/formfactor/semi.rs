@@ -15,14 +15,18 @@
 //! nodes behind `P_j`'s plane contribute 0.
 //!
 //! The integral over `x` uses either
-//! - [`Nodes::Gauss`]: the tensor Gauss–Legendre rule of order `points` on the patch's
+//! - [`Nodes::Gauss`] (the default of `radiosity bake`): the tensor Gauss–Legendre rule of
+//!   order `points` on the patch's
 //!   parameter square (bilinear map for quads, collapsed map for triangles). The point
 //!   factor is analytic inside the patch for unoccluded pairs, with weak singularities only
 //!   where the patch touches `P_j` (a shared edge), so the rule converges quickly: for the
 //!   two unit-square plates (Howell C-11, and C-14 with its shared edge) 4 nodes per side
-//!   give 1e-5 relative, 8 give 1e-10 and 12 reach rounding error. The nodes are the same in every replicate; replicates differ only
-//!   in their visibility rays, so the standard error measures the visibility noise, not
-//!   the (deterministic, much smaller) quadrature error.
+//!   give 1e-5 relative, 8 give 1e-10 and 12 reach rounding error. The nodes are the same in every replicate and for every receiver j, so
+//!   in a closed scene the unoccluded part of each row sums to 1 exactly (the point
+//!   factors of a point inside a closed surface sum to 1). Replicates differ only in their
+//!   visibility rays; the reported error adds, in quadrature, the replicate standard error
+//!   of the visibility and the difference between the order-`points` and order
+//!   `points - 1` rules (a conservative estimate of the deterministic quadrature error).
 //! - [`Nodes::Stratified`]: one jittered point in each of `points²` strata of the patch
 //!   (uniform by area), independently in each replicate; the standard error then covers
 //!   the whole estimate.
@@ -71,12 +75,6 @@ pub struct SemiAnalytic {
     pub vis_rays: usize,
     /// Independent replicates (>= 2) for the standard error.
     pub replicates: usize,
-    /// With stratified nodes: size the node grid per pair to what the pair needs,
-    /// `min(points, ceil(2 d_i / r_ij))` per side, where `d_i` is the emitter's diameter and
-    /// `r_ij` the distance between centroids. The point factor varies across the emitter on
-    /// the scale `r_ij`, so distant pairs need one node per replicate and adjacent pairs
-    /// get the full grid.
-    pub adaptive: bool,
 }
 
 impl Default for SemiAnalytic {
@@ -86,21 +84,8 @@ impl Default for SemiAnalytic {
             points: 4,
             vis_rays: 4,
             replicates: 4,
-            adaptive: false,
         }
     }
-}
-
-/// Largest distance between two corners of patch `i`.
-fn diameter(p: &PatchSet, i: usize) -> f32 {
-    let (pts, k) = p.corner_points(i);
-    let mut d = 0.0f32;
-    for a in 0..k {
-        for b in a + 1..k {
-            d = d.max((pts[a] - pts[b]).length());
-        }
-    }
-    d
 }
 
 /// Corners of patch `i` in f64.
@@ -179,7 +164,6 @@ impl Estimator for SemiAnalytic {
     fn name(&self) -> String {
         let kind = match self.nodes {
             Nodes::Gauss => "semi-gauss",
-            Nodes::Stratified if self.adaptive => "semi-adaptive",
             Nodes::Stratified => "semi-stratified",
         };
         let (p, v) = (self.points, self.vis_rays);
@@ -196,7 +180,6 @@ impl Estimator for SemiAnalytic {
         let tol = 1e-6 * p.diagonal as f32;
         let n_i = p.normal[i];
         let n_x = n_i.as_dvec3();
-        let diam_i = diameter(p, i);
         // Patches that could block anything leaving i: a corner strictly in front of i.
         let others: Vec<u32> = (0..p.len())
             .filter(|&k| k != i && plane_range(p, i, k).1 > tol)
@@ -204,8 +187,14 @@ impl Estimator for SemiAnalytic {
             .collect();
         let rule = gauss_legendre(m);
         let mut nodes = Vec::with_capacity(m * m);
+        // Gauss mode: the rule of order m - 1 on the same patch estimates the quadrature
+        // error of the order-m rule (|Q_m - Q_{m-1}|, conservative for a converging rule).
+        let mut nodes_lo = Vec::new();
         if self.nodes == Nodes::Gauss {
             gauss_nodes(p, i, &rule, &mut nodes);
+            if m >= 2 {
+                gauss_nodes(p, i, &gauss_legendre(m - 1), &mut nodes_lo);
+            }
         }
         let mut strata = Vec::new();
         let mut ys = Vec::new();
@@ -228,17 +217,11 @@ impl Estimator for SemiAnalytic {
             } else {
                 Vec::new()
             };
-            let m_ij = if self.adaptive {
-                let r = (p.centroid[j] - p.centroid[i]).length().max(f32::MIN_POSITIVE);
-                ((2.0 * diam_i / r).ceil() as usize).clamp(1, m)
-            } else {
-                m
-            };
             for (r, mean) in means.iter_mut().enumerate() {
                 let mut rng = Pcg32::keyed(ctx.seed, i as u64, j as u64, r as u64);
                 if self.nodes == Nodes::Stratified {
-                    jittered(&mut rng, m_ij, &mut strata);
-                    let w = p.area[i] / (m_ij * m_ij) as f64;
+                    jittered(&mut rng, m, &mut strata);
+                    let w = p.area[i] / (m * m) as f64;
                     nodes.clear();
                     nodes.extend(
                         strata
@@ -288,10 +271,28 @@ impl Estimator for SemiAnalytic {
             let avg = means.iter().sum::<f64>() / reps as f64;
             if avg > 0.0 {
                 let var = means.iter().map(|v| (v - avg).powi(2)).sum::<f64>() / (reps - 1) as f64;
+                let mut se2 = var / reps as f64;
+                if !nodes_lo.is_empty() {
+                    // Quadrature error of the unoccluded factor, scaled by the visible fraction.
+                    let area_i = p.area[i];
+                    let q_hi: f64 =
+                        nodes.iter().zip(&fixed).map(|(n, f)| n.1 * f).sum::<f64>() / area_i;
+                    let q_lo: f64 = nodes_lo
+                        .iter()
+                        .map(|&(x, w)| w * point_factor(x, n_x, poly, n_y, c_j))
+                        .sum::<f64>()
+                        / area_i;
+                    let visible = if q_hi > 0.0 {
+                        (avg / q_hi).min(1.0)
+                    } else {
+                        1.0
+                    };
+                    se2 += ((q_hi - q_lo) * visible).powi(2);
+                }
                 row.entries.push(Entry {
                     j: j as u32,
                     f: avg,
-                    se: (var / reps as f64).sqrt(),
+                    se: se2.sqrt(),
                 });
             }
         }
@@ -340,7 +341,6 @@ mod tests {
             points: 12,
             vis_rays: 4,
             replicates: 2,
-            adaptive: false,
         };
         let (f01, f10, rays) = plates("plates-parallel", &est);
         let want = parallel_rectangles(1.0, 1.0, 1.0);
@@ -365,7 +365,6 @@ mod tests {
             points: 8,
             vis_rays: 2,
             replicates: 16,
-            adaptive: false,
         };
         let scene = Scene::load("plates-perpendicular").unwrap();
         let patches = PatchSet::build(&scene, Resolution::MaxEdge(10.0)).unwrap();
@@ -399,7 +398,6 @@ mod tests {
             points: 8,
             vis_rays: 3,
             replicates: 2,
-            adaptive: false,
         };
         let ff = compute(&ctx, &est, &|_| {});
         assert!(ff.rays > 0);
@@ -427,7 +425,6 @@ mod tests {
             points: 6,
             vis_rays: 4,
             replicates: 8,
-            adaptive: false,
         };
         let mc = AreaMc {
             pattern: Pattern::Stratified,

@@ -122,7 +122,7 @@ impl PatchSet {
     pub fn build(scene: &Scene, res: Resolution) -> Result<PatchSet> {
         let (lo, hi) = scene.bounds();
         let diagonal = (hi - lo).as_dvec3().length();
-        if !(diagonal > 0.0) || !diagonal.is_finite() {
+        if diagonal.is_nan() || diagonal <= 0.0 || !diagonal.is_finite() {
             return Err(Error::Scene {
                 scene: scene.source.clone(),
                 msg: "the scene has no extent (all vertices coincide)".into(),
@@ -131,7 +131,9 @@ impl PatchSet {
         let max_edge = match res {
             Resolution::MaxEdge(h) if h > 0.0 && h.is_finite() => h,
             Resolution::MaxEdge(h) => {
-                return Err(Error::Config(format!("patch edge length must be > 0, got {h}")))
+                return Err(Error::Config(format!(
+                    "patch edge length must be > 0, got {h}"
+                )))
             }
             Resolution::Patches(0) => {
                 return Err(Error::Config("patch count must be at least 1".into()))
@@ -155,8 +157,11 @@ impl PatchSet {
     }
 
     fn add_face(&mut self, scene: &Scene, fi: u32, face: &Face, h: f64) {
-        let p: Vec<DVec3> =
-            face.corner_slice().iter().map(|&c| scene.positions[c as usize].as_dvec3()).collect();
+        let p: Vec<DVec3> = face
+            .corner_slice()
+            .iter()
+            .map(|&c| scene.positions[c as usize].as_dvec3())
+            .collect();
         let base = self.vertices.len() as u32;
         if p.len() == 4 {
             let nu = cells(p[1] - p[0], h).max(cells(p[2] - p[3], h));
@@ -180,7 +185,9 @@ impl PatchSet {
                 }
             }
         } else {
-            let n = cells(p[1] - p[0], h).max(cells(p[2] - p[1], h)).max(cells(p[0] - p[2], h));
+            let n = cells(p[1] - p[0], h)
+                .max(cells(p[2] - p[1], h))
+                .max(cells(p[0] - p[2], h));
             // Row r has n - r + 1 vertices: P = p0 + (p1 - p0) a/n + (p2 - p0) r/n.
             let mut row_start = Vec::with_capacity(n + 1);
             for r in 0..=n {
@@ -208,7 +215,10 @@ impl PatchSet {
 
     fn push_patch(&mut self, c: [u32; 4], material: u32, face: u32) {
         let n = if c[3] == NONE { 3 } else { 4 };
-        let pts: Vec<DVec3> = c[..n].iter().map(|&k| self.vertices[k as usize].as_dvec3()).collect();
+        let pts: Vec<DVec3> = c[..n]
+            .iter()
+            .map(|&k| self.vertices[k as usize].as_dvec3())
+            .collect();
         let mut newell = DVec3::ZERO;
         let mut centroid = DVec3::ZERO;
         let mut area_sum = 0.0;
@@ -223,7 +233,8 @@ impl PatchSet {
         self.corners.push(c);
         self.area.push(newell.length() * 0.5);
         self.normal.push(newell.normalize_or_zero().as_vec3());
-        self.centroid.push((centroid / area_sum.max(f64::MIN_POSITIVE)).as_vec3());
+        self.centroid
+            .push((centroid / area_sum.max(f64::MIN_POSITIVE)).as_vec3());
         self.material.push(material);
         self.face.push(face);
         self.triangles.push([c[0], c[1], c[2]]);
@@ -272,13 +283,18 @@ fn edge_for_count(scene: &Scene, n: usize) -> f64 {
             .faces
             .iter()
             .map(|f| {
-                let p: Vec<DVec3> =
-                    f.corner_slice().iter().map(|&c| scene.positions[c as usize].as_dvec3()).collect();
+                let p: Vec<DVec3> = f
+                    .corner_slice()
+                    .iter()
+                    .map(|&c| scene.positions[c as usize].as_dvec3())
+                    .collect();
                 if p.len() == 4 {
                     cells(p[1] - p[0], h).max(cells(p[2] - p[3], h))
                         * cells(p[3] - p[0], h).max(cells(p[2] - p[1], h))
                 } else {
-                    let k = cells(p[1] - p[0], h).max(cells(p[2] - p[1], h)).max(cells(p[0] - p[2], h));
+                    let k = cells(p[1] - p[0], h)
+                        .max(cells(p[2] - p[1], h))
+                        .max(cells(p[0] - p[2], h));
                     k * k
                 }
             })

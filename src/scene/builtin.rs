@@ -7,7 +7,13 @@ use super::{obj, Scene};
 use crate::error::{Error, Result};
 
 /// Names of the built-in scenes.
-pub const NAMES: &[&str] = &["cornell", "plates-perpendicular", "plates-parallel", "cube", "shelf"];
+pub const NAMES: &[&str] = &[
+    "cornell",
+    "plates-perpendicular",
+    "plates-parallel",
+    "cube",
+    "shelf",
+];
 
 /// OBJ text and the MTL files it may reference, per built-in scene.
 fn files(name: &str) -> Option<(&'static str, &'static [(&'static str, &'static str)])> {
@@ -18,9 +24,10 @@ fn files(name: &str) -> Option<(&'static str, &'static [(&'static str, &'static 
     const SHELF_MTL: &[(&str, &str)] = &[("shelf.mtl", include_str!("../../scenes/shelf.mtl"))];
     Some(match name {
         "cornell" => (include_str!("../../scenes/cornell.obj"), CORNELL_MTL),
-        "plates-perpendicular" => {
-            (include_str!("../../scenes/plates-perpendicular.obj"), PLATES_MTL)
-        }
+        "plates-perpendicular" => (
+            include_str!("../../scenes/plates-perpendicular.obj"),
+            PLATES_MTL,
+        ),
         "plates-parallel" => (include_str!("../../scenes/plates-parallel.obj"), PLATES_MTL),
         "cube" => (include_str!("../../scenes/cube.obj"), CUBE_MTL),
         "shelf" => (include_str!("../../scenes/shelf.obj"), SHELF_MTL),
@@ -30,7 +37,9 @@ fn files(name: &str) -> Option<(&'static str, &'static [(&'static str, &'static 
 
 /// The built-in scene `name`, or `None` when there is no such built-in scene.
 pub fn load(name: &str) -> Result<Option<Scene>> {
-    let Some((obj_text, mtls)) = files(name) else { return Ok(None) };
+    let Some((obj_text, mtls)) = files(name) else {
+        return Ok(None);
+    };
     let label = PathBuf::from(format!("scenes/{name}.obj"));
     let mut scene = obj::parse(name, &label, obj_text, &|lib: &str| {
         mtls.iter()

@@ -113,7 +113,12 @@ impl Camera {
         let dist = radius / (vfov_deg.to_radians() * 0.5).tan() * 1.05;
         // Look from a direction slightly above and to the side, so that boxes show depth.
         let dir = Vec3::new(0.35, 0.45, 1.0).normalize();
-        Camera { eye: center + dir * dist, target: center, up: Vec3::Y, vfov_deg }
+        Camera {
+            eye: center + dir * dist,
+            target: center,
+            up: Vec3::Y,
+            vfov_deg,
+        }
     }
 }
 
@@ -161,7 +166,10 @@ impl Scene {
 
     /// Errors unless some face has an emitting material.
     pub fn require_emitter(&self) -> Result<()> {
-        let lit = self.faces.iter().any(|f| self.materials[f.material as usize].is_emitter());
+        let lit = self
+            .faces
+            .iter()
+            .any(|f| self.materials[f.material as usize].is_emitter());
         if lit {
             Ok(())
         } else {
@@ -185,7 +193,11 @@ impl Scene {
             scene: self.source.clone(),
             msg: format!("no material named `{name}`"),
         })?;
-        let m = Material { name: name.to_string(), rho, emit };
+        let m = Material {
+            name: name.to_string(),
+            rho,
+            emit,
+        };
         m.validate().map_err(|msg| Error::Material {
             path: self.source.clone().into(),
             line: None,
@@ -205,6 +217,9 @@ impl Scene {
         if path.exists() || name_or_path.contains('/') || name_or_path.ends_with(".obj") {
             return obj::load_file(path);
         }
-        Err(Error::UnknownScene { name: name_or_path.to_string(), known: builtin::NAMES.join(", ") })
+        Err(Error::UnknownScene {
+            name: name_or_path.to_string(),
+            known: builtin::NAMES.join(", "),
+        })
     }
 }

@@ -29,7 +29,10 @@ const DEFAULT_RHO: f64 = 0.5;
 pub fn load_file(path: &Path) -> Result<Scene> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
     let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
-    let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
     parse(&name, path, &text, &|lib: &str| {
         let p = dir.join(lib);
         let t = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
@@ -98,7 +101,9 @@ pub fn parse(
         let mesh = &model.mesh;
         let base = scene.positions.len() as u32;
         scene.positions.extend(
-            mesh.positions.chunks_exact(3).map(|p| Vec3::new(p[0], p[1], p[2])),
+            mesh.positions
+                .chunks_exact(3)
+                .map(|p| Vec3::new(p[0], p[1], p[2])),
         );
         let material = match mesh.material_id {
             Some(k) => k as u32,
@@ -121,10 +126,15 @@ pub fn parse(
             mesh.face_arities.len()
         };
         for f in 0..n_faces {
-            let arity =
-                if mesh.face_arities.is_empty() { 3 } else { mesh.face_arities[f] as usize };
-            let idx: Vec<u32> =
-                mesh.indices[start..start + arity].iter().map(|&i| i + base).collect();
+            let arity = if mesh.face_arities.is_empty() {
+                3
+            } else {
+                mesh.face_arities[f] as usize
+            };
+            let idx: Vec<u32> = mesh.indices[start..start + arity]
+                .iter()
+                .map(|&i| i + base)
+                .collect();
             start += arity;
             let line = scan.face_lines.get(face_no).copied().unwrap_or(0);
             face_no += 1;
@@ -141,7 +151,13 @@ pub fn parse(
     Ok(scene)
 }
 
-fn parse_floats(path: &Path, line: usize, what: &str, words: &[&str], n: usize) -> Result<Vec<f64>> {
+fn parse_floats(
+    path: &Path,
+    line: usize,
+    what: &str,
+    words: &[&str],
+    n: usize,
+) -> Result<Vec<f64>> {
     if words.len() < n {
         return Err(Error::Parse {
             path: path.to_path_buf(),
@@ -168,13 +184,19 @@ fn parse_floats(path: &Path, line: usize, what: &str, words: &[&str], n: usize) 
 }
 
 fn scan_lines(path: &Path, text: &str) -> Result<Scan> {
-    let mut scan =
-        Scan { mtllibs: Vec::new(), usemtl: Vec::new(), face_lines: Vec::new(), camera: None };
+    let mut scan = Scan {
+        mtllibs: Vec::new(),
+        usemtl: Vec::new(),
+        face_lines: Vec::new(),
+        camera: None,
+    };
     let mut n_vertices = 0usize;
     for (k, raw) in text.lines().enumerate() {
         let line = k + 1;
         let words: Vec<&str> = raw.split_whitespace().collect();
-        let Some((&key, rest)) = words.split_first() else { continue };
+        let Some((&key, rest)) = words.split_first() else {
+            continue;
+        };
         match key {
             "v" => {
                 parse_floats(path, line, "v", rest, 3)?;
@@ -224,7 +246,9 @@ fn parse_camera(path: &Path, line: usize, words: &[&str]) -> Result<Camera> {
     let bad = |msg: &str| Error::Parse {
         path: path.to_path_buf(),
         line: Some(line),
-        msg: format!("#@camera: {msg} (expected `#@camera eye X Y Z target X Y Z up X Y Z fov DEG`)"),
+        msg: format!(
+            "#@camera: {msg} (expected `#@camera eye X Y Z target X Y Z up X Y Z fov DEG`)"
+        ),
     };
     let mut vals: HashMap<&str, Vec<f64>> = HashMap::new();
     let mut i = 0;
@@ -234,7 +258,10 @@ fn parse_camera(path: &Path, line: usize, words: &[&str]) -> Result<Camera> {
         if !["eye", "target", "up", "fov"].contains(&key) {
             return Err(bad(&format!("unknown key `{key}`")));
         }
-        vals.insert(key, parse_floats(path, line, key, &words[(i + 1).min(words.len())..], n)?);
+        vals.insert(
+            key,
+            parse_floats(path, line, key, &words[(i + 1).min(words.len())..], n)?,
+        );
         i += 1 + n;
     }
     let v3 = |k: &str| -> Result<Vec3> {
@@ -245,7 +272,12 @@ fn parse_camera(path: &Path, line: usize, words: &[&str]) -> Result<Camera> {
     if !(1.0..179.0).contains(&fov) {
         return Err(bad("fov must be between 1 and 179 degrees"));
     }
-    Ok(Camera { eye: v3("eye")?, target: v3("target")?, up: v3("up").unwrap_or(Vec3::Y), vfov_deg: fov })
+    Ok(Camera {
+        eye: v3("eye")?,
+        target: v3("target")?,
+        up: v3("up").unwrap_or(Vec3::Y),
+        vfov_deg: fov,
+    })
 }
 
 /// Reads `newmtl`, `Kd` and `Ke` from MTL text, checking ranges with line numbers.
@@ -254,11 +286,17 @@ pub fn parse_mtl(path: &Path, text: &str) -> Result<Vec<Material>> {
     for (k, raw) in text.lines().enumerate() {
         let line = k + 1;
         let words: Vec<&str> = raw.split_whitespace().collect();
-        let Some((&key, rest)) = words.split_first() else { continue };
+        let Some((&key, rest)) = words.split_first() else {
+            continue;
+        };
         let rgb = |what: &str| -> Result<[f64; 3]> {
             let n = if rest.len() == 1 { 1 } else { 3 };
             let v = parse_floats(path, line, what, rest, n)?;
-            Ok(if n == 1 { [v[0]; 3] } else { [v[0], v[1], v[2]] })
+            Ok(if n == 1 {
+                [v[0]; 3]
+            } else {
+                [v[0], v[1], v[2]]
+            })
         };
         match key {
             "newmtl" => {
@@ -270,7 +308,14 @@ pub fn parse_mtl(path: &Path, text: &str) -> Result<Vec<Material>> {
                         msg: "`newmtl` needs a name".into(),
                     });
                 }
-                out.push((Material { name, rho: [0.0; 3], emit: [0.0; 3] }, line));
+                out.push((
+                    Material {
+                        name,
+                        rho: [0.0; 3],
+                        emit: [0.0; 3],
+                    },
+                    line,
+                ));
             }
             "Kd" | "Ke" => {
                 let value = rgb(key)?;
@@ -306,15 +351,21 @@ fn run_tobj(path: &Path, text: &str, materials: &[Material]) -> Result<Vec<tobj:
         single_index: false,
         ignore_points: true,
         ignore_lines: true,
-        ..Default::default()
     };
     let tobj_materials: Vec<tobj::Material> = materials
         .iter()
-        .map(|m| tobj::Material { name: m.name.clone(), ..Default::default() })
+        .map(|m| tobj::Material {
+            name: m.name.clone(),
+            ..Default::default()
+        })
         .collect();
     let load = |t: &str| {
         tobj::load_obj_buf(&mut BufReader::new(t.as_bytes()), &opts, |_| {
-            let map = materials.iter().enumerate().map(|(k, m)| (m.name.clone(), k)).collect();
+            let map = materials
+                .iter()
+                .enumerate()
+                .map(|(k, m)| (m.name.clone(), k))
+                .collect();
             Ok((tobj_materials.clone(), map))
         })
     };
@@ -366,35 +417,47 @@ fn add_polygon(scene: &mut Scene, idx: &[u32], material: u32, line: usize) {
     while corners.len() > 1 && corners.first() == corners.last() {
         corners.pop();
     }
-    let pts: Vec<DVec3> =
-        corners.iter().map(|&i| scene.positions[i as usize].as_dvec3()).collect();
+    let pts: Vec<DVec3> = corners
+        .iter()
+        .map(|&i| scene.positions[i as usize].as_dvec3())
+        .collect();
     let scale = pts
         .iter()
         .flat_map(|a| pts.iter().map(move |b| (*a - *b).length_squared()))
         .fold(0.0, f64::max);
     let n = newell(&pts);
     if corners.len() < 3 || n.length() <= 1e-10 * scale || scale == 0.0 {
-        scene.warnings.push(format!("dropped a degenerate face (zero area) at line {line}"));
+        scene.warnings.push(format!(
+            "dropped a degenerate face (zero area) at line {line}"
+        ));
         return;
     }
     let unit = n.normalize();
     // Quads a little out of plane (the published Cornell walls are, by a few mm in 550)
     // stay quads: their sub-patches follow the bilinear surface and are planar to second
     // order. Beyond 1% of the diagonal the quad is split and the user told.
-    let planar = pts.iter().all(|p| (*p - pts[0]).dot(unit).abs() <= 1e-2 * scale.sqrt());
+    let planar = pts
+        .iter()
+        .all(|p| (*p - pts[0]).dot(unit).abs() <= 1e-2 * scale.sqrt());
     let convex = (0..pts.len()).all(|k| {
         let (a, b, c) = (pts[k], pts[(k + 1) % pts.len()], pts[(k + 2) % pts.len()]);
         (b - a).cross(c - b).dot(unit) > 0.0
     });
     let push = |scene: &mut Scene, c: [u32; 4]| {
-        scene.faces.push(Face { corners: c, material, line: line as u32 });
+        scene.faces.push(Face {
+            corners: c,
+            material,
+            line: line as u32,
+        });
     };
     match corners.len() {
         3 => push(scene, [corners[0], corners[1], corners[2], Face::NONE]),
         4 if planar && convex => push(scene, [corners[0], corners[1], corners[2], corners[3]]),
         _ => {
             if !planar {
-                scene.warnings.push(format!("split a non-planar polygon at line {line}"));
+                scene
+                    .warnings
+                    .push(format!("split a non-planar polygon at line {line}"));
             }
             // Fan from corner 0; drop slivers that come out degenerate.
             for k in 1..corners.len() - 1 {
@@ -412,12 +475,16 @@ mod tests {
     use super::*;
 
     fn no_mtl(_: &str) -> Result<(PathBuf, String)> {
-        Ok((PathBuf::from("m.mtl"), "newmtl w\nKd 0.5 0.5 0.5\nKe 1 1 1\n".into()))
+        Ok((
+            PathBuf::from("m.mtl"),
+            "newmtl w\nKd 0.5 0.5 0.5\nKe 1 1 1\n".into(),
+        ))
     }
 
     #[test]
     fn quad_and_triangle() {
-        let obj = "mtllib m.mtl\nusemtl w\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\nf 1 2 3\n";
+        let obj =
+            "mtllib m.mtl\nusemtl w\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\nf 1 2 3\n";
         let s = parse("t", Path::new("t.obj"), obj, &no_mtl).unwrap();
         assert_eq!(s.faces.len(), 2);
         assert_eq!(s.faces[0].len(), 4);
@@ -429,7 +496,9 @@ mod tests {
     #[test]
     fn nan_vertex_names_line() {
         let obj = "v 0 0 0\nv nan 0 0\n";
-        let e = parse("t", Path::new("t.obj"), obj, &no_mtl).unwrap_err().to_string();
+        let e = parse("t", Path::new("t.obj"), obj, &no_mtl)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("t.obj:2"), "{e}");
         assert!(e.contains("non-finite"), "{e}");
     }
@@ -438,7 +507,10 @@ mod tests {
     fn rho_out_of_range_names_material() {
         let e = parse_mtl(Path::new("m.mtl"), "newmtl x\nKd 1.0 0.2 0.2\n").unwrap_err();
         let e = e.to_string();
-        assert!(e.contains("m.mtl:2") && e.contains("`x`") && e.contains("[0, 1)"), "{e}");
+        assert!(
+            e.contains("m.mtl:2") && e.contains("`x`") && e.contains("[0, 1)"),
+            "{e}"
+        );
     }
 
     #[test]

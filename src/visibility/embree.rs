@@ -33,7 +33,9 @@ unsafe extern "C" fn error_callback(user: *mut c_void, code: sys::RTCError, msg:
     let text = if msg.is_null() {
         String::new()
     } else {
-        unsafe { CStr::from_ptr(msg) }.to_string_lossy().into_owned()
+        unsafe { CStr::from_ptr(msg) }
+            .to_string_lossy()
+            .into_owned()
     };
     if let Ok(mut last) = sink.last.lock() {
         *last = Some(format!("{code:?}: {text}"));
@@ -75,7 +77,9 @@ impl EmbreeScene {
     /// Builds and commits a scene from triangles (indices into `vertices`).
     pub fn new(vertices: &[Vec3], triangles: &[[u32; 3]]) -> Result<Self, Error> {
         if triangles.len() > u32::MAX as usize / 2 || vertices.len() > u32::MAX as usize / 2 {
-            return Err(Error::Embree("mesh too large for one Embree geometry".into()));
+            return Err(Error::Embree(
+                "mesh too large for one Embree geometry".into(),
+            ));
         }
         let config = c"threads=0,verbose=0";
         // SAFETY: `rtcNewDevice` accepts a NUL-terminated configuration string.
@@ -85,7 +89,9 @@ impl EmbreeScene {
                 "rtcNewDevice failed (CPU without SSE2, or a broken libembree4)".into(),
             ));
         }
-        let sink = Box::new(ErrorSink { last: Mutex::new(None) });
+        let sink = Box::new(ErrorSink {
+            last: Mutex::new(None),
+        });
         // SAFETY: the sink is boxed (stable address) and outlives the device (see Drop).
         unsafe {
             sys::rtcSetDeviceErrorFunction(
@@ -96,7 +102,12 @@ impl EmbreeScene {
         };
         // SAFETY: a valid device; a null scene is reported below.
         let scene = unsafe { sys::rtcNewScene(device) };
-        let mut this = EmbreeScene { device, scene, sink, triangles: triangles.len() };
+        let mut this = EmbreeScene {
+            device,
+            scene,
+            sink,
+            triangles: triangles.len(),
+        };
         if scene.is_null() {
             return Err(this.error("rtcNewScene"));
         }
@@ -113,8 +124,7 @@ impl EmbreeScene {
 
     fn add_triangles(&mut self, vertices: &[Vec3], triangles: &[[u32; 3]]) -> Result<(), Error> {
         // SAFETY: a valid device.
-        let geom =
-            unsafe { sys::rtcNewGeometry(self.device, sys::RTCGeometryType::TRIANGLE) };
+        let geom = unsafe { sys::rtcNewGeometry(self.device, sys::RTCGeometryType::TRIANGLE) };
         if geom.is_null() {
             return Err(self.error("rtcNewGeometry"));
         }
@@ -164,9 +174,7 @@ impl EmbreeScene {
     /// The Embree version the library reports, as `major.minor.patch`.
     pub fn version(&self) -> String {
         // SAFETY: a valid device; VERSION is a read-only property.
-        let v = unsafe {
-            sys::rtcGetDeviceProperty(self.device, sys::RTCDeviceProperty::VERSION)
-        };
+        let v = unsafe { sys::rtcGetDeviceProperty(self.device, sys::RTCDeviceProperty::VERSION) };
         format!("{}.{}.{}", v / 10000, (v / 100) % 100, v % 100)
     }
 
@@ -237,8 +245,8 @@ impl EmbreeScene {
         // SAFETY: the scene is committed; the packet is 64-byte aligned as RTCRay16 requires
         // (bindgen keeps RTC_ALIGN(64)); lanes with valid = 0 are ignored.
         unsafe { sys::rtcOccluded16(valid.as_ptr(), self.scene, &mut packet, null_mut()) };
-        for k in 0..rays.len() {
-            out[k] = packet.tfar[k] < 0.0;
+        for (o, tfar) in out.iter_mut().zip(packet.tfar).take(rays.len()) {
+            *o = tfar < 0.0;
         }
     }
 
@@ -268,8 +276,10 @@ impl EmbreeScene {
         // SAFETY: the scene is committed; the ray-hit has room for the widest RTCHit layout.
         unsafe { sys::rtcIntersect1(self.scene, &mut rh.rayhit, null_mut()) };
         let hit = &rh.rayhit.hit;
-        (hit.geomID != sys::RTC_INVALID_GEOMETRY_ID)
-            .then_some(RawHit { prim: hit.primID, t: rh.rayhit.ray.tfar })
+        (hit.geomID != sys::RTC_INVALID_GEOMETRY_ID).then_some(RawHit {
+            prim: hit.primID,
+            t: rh.rayhit.ray.tfar,
+        })
     }
 }
 

@@ -43,7 +43,11 @@ impl Visibility {
     pub fn new(patches: &PatchSet) -> Result<Visibility> {
         let scene = EmbreeScene::new(&patches.vertices, &patches.triangles)?;
         let eps = (patches.diagonal as f32 * OFFSET_REL).max(f32::MIN_POSITIVE);
-        Ok(Visibility { scene, tri_patch: patches.tri_patch.clone(), eps })
+        Ok(Visibility {
+            scene,
+            tri_patch: patches.tri_patch.clone(),
+            eps,
+        })
     }
 
     /// The offset used for ray ends.
@@ -95,6 +99,9 @@ impl Visibility {
         let org = x + off * self.eps;
         self.scene
             .intersect1(org, dir, 0.0, f32::INFINITY)
-            .map(|h| Hit { patch: self.tri_patch[h.prim as usize], t: h.t })
+            .map(|h| Hit {
+                patch: self.tri_patch[h.prim as usize],
+                t: h.t,
+            })
     }
 }
