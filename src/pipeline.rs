@@ -414,12 +414,19 @@ pub fn format_summary(s: &BakeSummary) -> String {
     let d = &s.diagnostics;
     let _ = writeln!(
         o,
-        "  row sums in [{:.5}, {:.5}] (worst at patch {}, row-sum std. error <= {:.1e}); reciprocity error <= {:.1e}; {} stored factors{}",
-        d.min_row_sum,
+        "  row sums in [{:.5}, {:.5}] (row-sum std. error <= {:.1e}); {} rows over 1 beyond 3 std. errors; {} patches see nothing",
+        d.min_row_sum.max(0.0),
         d.max_row_sum,
-        d.max_row,
         s.max_row_sum_stderr,
-        d.reciprocity,
+        d.rows_over_one,
+        d.empty_rows
+    );
+    let _ = writeln!(
+        o,
+        "  reciprocity: worst relative gap {:.1e} over factors >= {:.0e}, {:.2}% of pairs beyond 3 std. errors; {} stored factors{}",
+        d.reciprocity_significant,
+        crate::matrix::SIGNIFICANT,
+        100.0 * d.reciprocity_beyond_3se,
         d.nnz,
         if d.out_of_range > 0 { format!("; {} OUT OF [0, 1]", d.out_of_range) } else { String::new() }
     );
