@@ -143,6 +143,9 @@ fn gauss_nodes(p: &PatchSet, i: usize, rule: &[(f64, f64)], out: &mut Vec<(DVec3
     }
 }
 
+/// Quadrature nodes: (point, weight).
+type NodeList = Vec<(DVec3, f64)>;
+
 /// The part of a convex polygon on the front side of the plane through `c` with normal
 /// `n` (Sutherland–Hodgman against one plane).
 fn clip_front(poly: &[DVec3], n: DVec3, c: DVec3) -> Vec<DVec3> {
@@ -268,7 +271,7 @@ impl Estimator for SemiAnalytic {
                     gauss_nodes_polygon(&front, &rule_lo, &mut clip_nodes_lo);
                 }
             }
-            let (nodes_j, nodes_lo_j): (&Vec<(DVec3, f64)>, &Vec<(DVec3, f64)>) = if straddles {
+            let (nodes_j, nodes_lo_j): (&NodeList, &NodeList) = if straddles {
                 (&clip_nodes, &clip_nodes_lo)
             } else {
                 (&nodes, &nodes_lo)
