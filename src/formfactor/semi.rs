@@ -181,23 +181,31 @@ fn gauss_nodes_polygon(poly: &[DVec3], rule: &[(f64, f64)], out: &mut Vec<(DVec3
 impl SemiAnalytic {
     /// True when no other patch can block any segment between patches `i` and `j` (see
     /// the module docs). `others` are the patches with a corner strictly in front of i.
-    fn unoccluded(&self, p: &PatchSet, i: usize, j: usize, others: &[u32]) -> bool {
+    fn unoccluded(
+        &self,
+        p: &PatchSet,
+        i: usize,
+        j: usize,
+        others: &[u32],
+        boxes: &[(Vec3, Vec3)],
+    ) -> bool {
         let tol = 1e-6 * p.diagonal as f32;
-        let (lo_i, hi_i) = bounds(p, i);
-        let (lo_j, hi_j) = bounds(p, j);
+        let (lo_i, hi_i) = boxes[i];
+        let (lo_j, hi_j) = boxes[j];
         let (lo, hi) = (lo_i.min(lo_j) - tol, hi_i.max(hi_j) + tol);
         others.iter().all(|&k| {
             let k = k as usize;
-            if k == j || plane_range(p, j, k).1 <= tol {
+            // Cheapest test first: k's box misses the box of the two patches.
+            let (lk, hk) = boxes[k];
+            if k == j || lk.cmpgt(hi).any() || hk.cmplt(lo).any() {
+                return true;
+            }
+            if plane_range(p, j, k).1 <= tol {
                 return true;
             }
             // Both patches wholly on the front side of k's plane: segments between them
             // cannot cross that plane, so k cannot block (every wall of a convex room).
-            if plane_range(p, k, i).0 >= -tol && plane_range(p, k, j).0 >= -tol {
-                return true;
-            }
-            let (lk, hk) = bounds(p, k);
-            lk.cmpgt(hi).any() || hk.cmplt(lo).any()
+            plane_range(p, k, i).0 >= -tol && plane_range(p, k, j).0 >= -tol
         })
     }
 }
@@ -223,6 +231,7 @@ impl Estimator for SemiAnalytic {
         let n_i = p.normal[i];
         let n_x = n_i.as_dvec3();
         // Patches that could block anything leaving i: a corner strictly in front of i.
+        let boxes: Vec<(Vec3, Vec3)> = (0..p.len()).map(|k| bounds(p, k)).collect();
         let others: Vec<u32> = (0..p.len())
             .filter(|&k| k != i && plane_range(p, i, k).1 > tol)
             .map(|k| k as u32)
@@ -253,7 +262,7 @@ impl Estimator for SemiAnalytic {
             let poly = &cj[..kj];
             let (n_j, c_j) = (p.normal[j], p.centroid[j].as_dvec3());
             let n_y = n_j.as_dvec3();
-            let free = self.unoccluded(p, i, j, &others);
+            let free = self.unoccluded(p, i, j, &others, &boxes);
             // Gauss nodes only where nothing can block: there the integrand is smooth and
             // the rule exact to rounding. Where something may block, visibility jumps across
             // the emitter and fixed nodes can all miss a visible sliver, so fresh stratified
