@@ -313,7 +313,10 @@ where
                 .map_err(|e| err(&e))?,
         };
         anno.label(s.name.clone()).legend(move |(x, y)| {
-            PathElement::new(vec![(x, y), (x + 20, y)], ShapeStyle::from(c).stroke_width(3))
+            PathElement::new(
+                vec![(x, y), (x + 20, y)],
+                ShapeStyle::from(c).stroke_width(3),
+            )
         });
     }
     if series.iter().any(|s| !s.name.is_empty()) {
@@ -338,7 +341,9 @@ mod tests {
         let s = vec![
             Series::new(
                 "1/sqrt(n)",
-                (1..6).map(|k| (10f64.powi(k), 10f64.powf(-0.5 * k as f64))).collect(),
+                (1..6)
+                    .map(|k| (10f64.powi(k), 10f64.powf(-0.5 * k as f64)))
+                    .collect(),
             ),
             Series::new(
                 "1/n",
@@ -347,11 +352,14 @@ mod tests {
             // A zero cannot go on a log axis: dropped, not an error.
             Series::new("with zero", vec![(10.0, 0.0), (100.0, 1e-3)]),
         ];
-        let files = line_chart(&dir.join("err"), "Error", "rays", "|error|", true, true, &s)
-            .unwrap();
+        let files =
+            line_chart(&dir.join("err"), "Error", "rays", "|error|", true, true, &s).unwrap();
         assert_eq!(files, vec![dir.join("err.svg"), dir.join("err.png")]);
         let svg = std::fs::read_to_string(&files[0]).unwrap();
-        assert!(svg.starts_with("<svg") && svg.contains("1/sqrt(n)"), "{svg:.200}");
+        assert!(
+            svg.starts_with("<svg") && svg.contains("1/sqrt(n)"),
+            "{svg:.200}"
+        );
         let png = std::fs::read(&files[1]).unwrap();
         assert_eq!(&png[1..4], b"PNG");
         let decoder = png::Decoder::new(std::io::Cursor::new(png));
