@@ -241,6 +241,7 @@ fn reciprocity(ff: &mut FormFactors, sigma: &[f64], update_se: bool) {
 }
 
 /// Weighted least-squares correction of each row to sum 1 (see the module docs).
+#[allow(clippy::needless_range_loop)] // indexes two parallel arrays
 fn closure(ff: &mut FormFactors, sigma: &[f64], update_se: bool) {
     let n = ff.len();
     for i in 0..n {

@@ -266,6 +266,19 @@ fn draw<DB: DrawingBackend>(
     }
 }
 
+/// Tick label: plain for moderate magnitudes, `1e-5` style otherwise.
+fn tick(v: &f64) -> String {
+    let a = v.abs();
+    if *v == 0.0 {
+        "0".into()
+    } else if (1e-3..1e5).contains(&a) {
+        let s = format!("{v:.3}");
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        format!("{v:.0e}")
+    }
+}
+
 fn plot<DB, X, Y>(
     root: &DrawingArea<DB, Shift>,
     spec: &Spec,
@@ -290,6 +303,8 @@ where
         .build_cartesian_2d(xr, yr)
         .map_err(|e| err(&e))?;
     ch.configure_mesh()
+        .x_label_formatter(&tick)
+        .y_label_formatter(&tick)
         .x_desc(spec.x_label)
         .y_desc(spec.y_label)
         .label_style(("sans-serif", 15))

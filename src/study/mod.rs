@@ -610,8 +610,8 @@ fn calibration_chart(dir: &Path, cal: &[Calibration]) -> Result<Vec<PathBuf>> {
     ));
     crate::output::chart::scatter_chart(
         &dir.join("calibration"),
-        "fraction of runs with |error| <= 2 SE (0 uniform, 1 stratified, 2 sobol, 3 hemisphere, 4 semi)",
-        "estimator",
+        "fraction of runs with |error| <= 2 SE",
+        "estimator: 0 uniform, 1 stratified, 2 sobol, 3 hemisphere, 4 semi",
         "coverage",
         false,
         false,
