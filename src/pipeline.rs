@@ -10,11 +10,12 @@ use std::time::Instant;
 
 use crate::error::{Error, Result};
 use crate::formfactor::{
-    self, AreaMc, Context, Estimator, Hemisphere, Nodes, Pattern, SemiAnalytic,
+    self, AreaMc, Context, Estimator, Hemicube, Hemisphere, Nodes, Pattern, SemiAnalytic,
 };
 use crate::matrix::{Diagnostics, FormFactors};
 use crate::mesh::{PatchSet, Resolution};
 use crate::output::{self, Exposure};
+use crate::repair::{self, Repair, RepairReport};
 use crate::scene::Scene;
 use crate::solve::{self, Method, Options, SolveReport, System};
 use crate::store;
@@ -36,6 +37,18 @@ pub enum EstimatorChoice {
         strata: usize,
         /// Replicates.
         replicates: usize,
+    },
+    /// Area-to-area randomized QMC: Owen-scrambled Sobol point pairs.
+    AreaSobol {
+        /// Points per replicate are `strata²` (a power of 2 suits Sobol best).
+        strata: usize,
+        /// Replicates (independent scrambles).
+        replicates: usize,
+    },
+    /// The hemicube: delta form factors of `res x res` cells, one ray per cell centre.
+    Hemicube {
+        /// Cells per side of the top face.
+        res: usize,
     },
     /// Hemisphere shooting: cosine-weighted rays from each patch, first hits counted.
     Hemisphere {
@@ -69,6 +82,12 @@ impl EstimatorChoice {
                 strata,
                 replicates,
             }),
+            EstimatorChoice::AreaSobol { strata, replicates } => Box::new(AreaMc {
+                pattern: Pattern::Sobol,
+                strata,
+                replicates,
+            }),
+            EstimatorChoice::Hemicube { res } => Box::new(Hemicube { res }),
             EstimatorChoice::Hemisphere { strata, replicates } => {
                 Box::new(Hemisphere { strata, replicates })
             }
@@ -111,6 +130,8 @@ pub struct BakeConfig {
     pub crease_deg: f32,
     /// Reuse the form factors stored in this folder instead of casting rays.
     pub factors: Option<PathBuf>,
+    /// Physical constraints to restore in the form factors before solving.
+    pub repair: Repair,
 }
 
 impl Default for BakeConfig {
@@ -131,6 +152,7 @@ impl Default for BakeConfig {
             exposure: Exposure::Auto,
             crease_deg: 30.0,
             factors: None,
+            repair: Repair::None,
         }
     }
 }
@@ -177,6 +199,8 @@ pub struct BakeSummary {
     pub diagnostics: Diagnostics,
     /// Largest standard error of a row sum.
     pub max_row_sum_stderr: f64,
+    /// Bounds found (rows over 1, entries out of range) and the repair applied.
+    pub repair: RepairReport,
     /// Solver report.
     pub solve: SolveReport,
     /// Time per stage.
@@ -296,6 +320,7 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
             (ff, embree)
         }
     };
+    let (ff, repair_report) = repair::repair(&ff, cfg.repair);
     let diagnostics = ff.diagnostics();
     let max_row_sum_stderr = (0..ff.len())
         .map(|i| ff.row_sum_stderr(i))
@@ -334,6 +359,7 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         estimator: ff.estimator.clone(),
         diagnostics,
         max_row_sum_stderr,
+        repair: repair_report,
         solve: report,
         stages: timer.stages,
         peak_memory: peak_memory(),
@@ -350,6 +376,8 @@ pub struct FactorsSummary {
     pub provenance: store::Provenance,
     /// Form-factor diagnostics.
     pub diagnostics: Diagnostics,
+    /// Bounds found and the repair applied.
+    pub repair: RepairReport,
     /// Time per stage.
     pub stages: Vec<StageTime>,
     /// Peak resident memory in bytes.
@@ -363,6 +391,7 @@ pub fn factors(
     estimator: &EstimatorChoice,
     seed: u64,
     out_dir: &std::path::Path,
+    repair: Repair,
     obs: &dyn Observer,
 ) -> Result<FactorsSummary> {
     let mut timer = Timer {
@@ -377,11 +406,13 @@ pub fn factors(
     })?;
     let (ff, stages, _) = form_factors(&patches, estimator, seed, obs)?;
     timer.stages.extend(stages);
+    let (ff, repair_report) = repair::repair(&ff, repair);
     let diagnostics = ff.diagnostics();
     let provenance = timer.run("write", 0, || store::write(out_dir, &patches, &ff))?;
     Ok(FactorsSummary {
         provenance,
         diagnostics,
+        repair: repair_report,
         stages: timer.stages,
         peak_memory: peak_memory(),
     })
@@ -430,6 +461,16 @@ pub fn format_summary(s: &BakeSummary) -> String {
         d.nnz,
         if d.out_of_range > 0 { format!("; {} OUT OF [0, 1]", d.out_of_range) } else { String::new() }
     );
+    let _ = writeln!(o, "  bounds: {}", s.repair.before.summary());
+    if s.repair.repair != Repair::None {
+        let _ = writeln!(
+            o,
+            "  repair {:?}: entries moved by <= {:.2} standard errors; after: {}",
+            s.repair.repair,
+            s.repair.max_shift_sigmas,
+            s.repair.after.summary()
+        );
+    }
     let _ = writeln!(
         o,
         "solve: {} in {} iterations, relative residual {:.2e}{}",
