@@ -172,7 +172,8 @@ impl AreaMc {
                         for a2 in 0..t {
                             for b1 in 0..t {
                                 for b2 in 0..t {
-                                    let j = |c: usize, r: &mut Pcg32| (c as f64 + r.next_f64()) * inv;
+                                    let j =
+                                        |c: usize, r: &mut Pcg32| (c as f64 + r.next_f64()) * inv;
                                     xs.push((j(a1, &mut rng), j(a2, &mut rng)));
                                     ys.push((j(b1, &mut rng), j(b2, &mut rng)));
                                 }
