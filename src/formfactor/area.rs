@@ -103,8 +103,9 @@ impl Estimator for AreaMc {
             Pattern::Sobol => "area-sobol",
         };
         format!(
-            "{kind}(pairs={}x{}x{})",
-            self.strata, self.strata, self.replicates
+            "{kind}(pairs={}x{})",
+            self.pairs_per_replicate(),
+            self.replicates.max(2)
         )
     }
 
