@@ -50,9 +50,16 @@ enum EstimatorArg {
 
 #[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 enum SolverArg {
+    /// Jacobi sweeps, rows in parallel.
     Jacobi,
+    /// Gauss-Seidel sweeps.
     GaussSeidel,
+    /// Progressive refinement by shooting.
     Progressive,
+    /// Preconditioned conjugate gradients on the symmetric form.
+    Cg,
+    /// Dense LU with partial pivoting (up to 4096 patches).
+    Direct,
 }
 
 #[derive(Args, Debug)]
@@ -165,7 +172,8 @@ struct BakeArgs {
     /// Relative residual at which the solver stops.
     #[arg(long, default_value_t = 1e-6)]
     tolerance: f64,
-    /// Iteration cap of the solver.
+    /// Iteration cap of the solver: sweeps (jacobi, gauss-seidel), iterations (cg); for
+    /// progressive, this times the patch count shots (n shots cost about one sweep).
     #[arg(long, default_value_t = 10_000)]
     max_iterations: usize,
     /// Write the result even when the solver stops before its tolerance.
@@ -180,6 +188,10 @@ struct BakeArgs {
     /// Reuse form factors stored by `radiosity factors` (same scene and subdivision).
     #[arg(long, value_name = "DIR")]
     factors: Option<PathBuf>,
+    /// Also write preview-step-NNNN.png after these progressive-refinement steps (shots),
+    /// with the ambient term, e.g. `--steps 1,2,24,100`.
+    #[arg(long, value_delimiter = ',', value_name = "N,N,...")]
+    steps: Vec<usize>,
 }
 
 #[derive(Args, Debug)]
@@ -274,6 +286,8 @@ fn bake(args: &BakeArgs) -> Result<()> {
             SolverArg::Jacobi => Method::Jacobi,
             SolverArg::GaussSeidel => Method::GaussSeidel,
             SolverArg::Progressive => Method::Progressive,
+            SolverArg::Cg => Method::Cg,
+            SolverArg::Direct => Method::Direct,
         },
         solve: Options {
             tolerance: args.tolerance,
@@ -284,6 +298,7 @@ fn bake(args: &BakeArgs) -> Result<()> {
         exposure: parse_exposure(&args.exposure)?,
         crease_deg: 30.0,
         factors: args.factors.clone(),
+        steps: args.steps.clone(),
     };
     let bars = Bars {
         bar: Mutex::new(None),
@@ -291,6 +306,13 @@ fn bake(args: &BakeArgs) -> Result<()> {
     };
     let summary = pipeline::bake(&cfg, &bars)?;
     print!("{}", pipeline::format_summary(&summary));
+    if !summary.solve.converged {
+        eprintln!(
+            "warning: {} stopped before its tolerance (relative residual {:.3e}); the result \
+             was written because of --keep-partial",
+            summary.solve.solver, summary.solve.residual
+        );
+    }
     Ok(())
 }
 
