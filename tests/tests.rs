@@ -4,3 +4,4 @@ mod bake;
 mod formfactors;
 mod invalid;
 mod shelf;
+mod stability;
