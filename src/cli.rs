@@ -12,8 +12,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 use radiosity::mesh::Resolution;
 use radiosity::output::Exposure;
 use radiosity::pipeline::{self, BakeConfig, EstimatorChoice, Observer};
+use radiosity::repair::Repair;
 use radiosity::scene::builtin;
 use radiosity::solve::{Method, Options};
+use radiosity::study;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -34,6 +36,21 @@ enum Command {
     Factors(FactorsArgs),
     /// List the built-in scenes.
     Scenes,
+    /// Compare every estimator against closed forms: CSV, charts, slopes, calibration.
+    Study(StudyArgs),
+}
+
+#[derive(Args, Debug)]
+struct StudyArgs {
+    /// Output folder.
+    #[arg(short, long, default_value = "study")]
+    output: PathBuf,
+    /// A small study (three budgets, two seeds, 20 calibration seeds), for tests.
+    #[arg(long)]
+    quick: bool,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
 }
 
 #[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -46,6 +63,33 @@ enum EstimatorArg {
     Uniform,
     /// Hemisphere shooting: samples² cosine-weighted rays per patch and replicate.
     Hemisphere,
+    /// Area-to-area randomized QMC: Owen-scrambled Sobol point pairs.
+    Sobol,
+    /// Hemicube with `--samples` cells per side of the top face (deterministic).
+    Hemicube,
+}
+
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum RepairArg {
+    /// Keep the estimates (rows over 1 are still reported).
+    None,
+    /// A_i F_ij = A_j F_ji by error-weighted means.
+    Reciprocity,
+    /// Rows sum to 1 by a least-squares correction (closed scenes only).
+    Closure,
+    /// Both constraints together.
+    Both,
+}
+
+impl RepairArg {
+    fn repair(self) -> Repair {
+        match self {
+            RepairArg::None => Repair::None,
+            RepairArg::Reciprocity => Repair::Reciprocity,
+            RepairArg::Closure => Repair::Closure,
+            RepairArg::Both => Repair::Both,
+        }
+    }
 }
 
 #[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -88,7 +132,8 @@ struct FactorArgs {
     /// Form-factor estimator.
     #[arg(long, value_enum, default_value_t = EstimatorArg::Semi)]
     estimator: EstimatorArg,
-    /// Samples per side: emitter points per side (semi) or strata per side (area estimators).
+    /// Samples per side: emitter points per side (semi), strata per side (area estimators)
+    /// or cells per side of the top face (hemicube).
     #[arg(long, default_value_t = 3)]
     samples: usize,
     /// Visibility strata per side for each emitter point (semi estimator): rays² rays.
@@ -103,6 +148,10 @@ struct FactorArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Restore physical constraints using the standard errors, keeping the sparsity
+    /// pattern (closure assumes a closed scene).
+    #[arg(long, value_enum, default_value_t = RepairArg::None)]
+    repair: RepairArg,
 }
 
 impl FactorArgs {
@@ -137,6 +186,11 @@ impl FactorArgs {
                 strata: self.samples,
                 replicates: self.replicates,
             },
+            EstimatorArg::Sobol => EstimatorChoice::AreaSobol {
+                strata: self.samples,
+                replicates: self.replicates,
+            },
+            EstimatorArg::Hemicube => EstimatorChoice::Hemicube { res: self.samples },
         })
     }
 
@@ -299,6 +353,7 @@ fn bake(args: &BakeArgs) -> Result<()> {
         crease_deg: 30.0,
         factors: args.factors.clone(),
         steps: args.steps.clone(),
+        repair: args.est.repair.repair(),
     };
     let bars = Bars {
         bar: Mutex::new(None),
@@ -333,6 +388,7 @@ pub fn run() -> Result<()> {
                 &args.factors.choice()?,
                 args.factors.seed,
                 &args.output,
+                args.factors.repair.repair(),
                 &bars,
             )?;
             let p = &s.provenance;
@@ -348,8 +404,46 @@ pub fn run() -> Result<()> {
                 d.reciprocity,
                 pipeline::mib(s.peak_memory)
             );
+            println!("bounds: {}", s.repair.before.summary());
+            if s.repair.repair != Repair::None {
+                println!(
+                    "repair {:?}: entries moved by <= {:.2} standard errors; after: {}",
+                    s.repair.repair,
+                    s.repair.max_shift_sigmas,
+                    s.repair.after.summary()
+                );
+            }
             println!(
                 "wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json}}",
+                args.output.display()
+            );
+            Ok(())
+        }
+        Command::Study(args) => {
+            if let Some(n) = args.threads {
+                if n == 0 {
+                    bail!("--threads must be at least 1");
+                }
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(n)
+                    .build_global()
+                    .context("cannot set the thread count")?;
+            }
+            let settings = if args.quick {
+                study::Settings::quick(args.output.clone())
+            } else {
+                study::Settings::full(args.output.clone())
+            };
+            let report = study::run(&settings)?;
+            print!(
+                "{}",
+                std::fs::read_to_string(args.output.join("summary.md")).unwrap_or_default()
+            );
+            println!(
+                "study: {} runs in {:.1}s; wrote {} files to {}",
+                report.runs.len(),
+                report.seconds,
+                report.files.len(),
                 args.output.display()
             );
             Ok(())

@@ -25,10 +25,12 @@ pub mod matrix;
 pub mod mesh;
 pub mod output;
 pub mod pipeline;
+pub mod repair;
 pub mod sampling;
 pub mod scene;
 pub mod solve;
 pub mod store;
+pub mod study;
 pub mod visibility;
 
 pub use error::{Error, Result};

@@ -14,7 +14,7 @@ use crate::formfactor::Entry;
 
 /// What [`repair_row_sums`] changed.
 #[derive(Clone, Debug, Default, PartialEq)]
-pub struct Repair {
+pub struct RowRepair {
     /// Rows scaled down to sum to 1.
     pub rows: Vec<usize>,
     /// The largest `rho_i * sum_j F_ij` before the repair (largest channel).
@@ -28,8 +28,8 @@ pub struct Repair {
 /// returns the repaired copy, or `None` when no row needs it. After the repair
 /// `max_i rho_i sum_j |F_ij| <= max rho < 1`, which bounds the spectral radius of
 /// `diag(rho) F` below 1: every solver converges and `B` stays bounded.
-pub fn repair_row_sums(f: &CsMat<f64>, rho: &[[f64; 3]]) -> Option<(CsMat<f64>, Repair)> {
-    let mut rep = Repair::default();
+pub fn repair_row_sums(f: &CsMat<f64>, rho: &[[f64; 3]]) -> Option<(CsMat<f64>, RowRepair)> {
+    let mut rep = RowRepair::default();
     let mut scale = vec![1.0; f.rows()];
     for (i, row) in f.outer_iterator().enumerate() {
         let sum: f64 = row.data().iter().sum();
@@ -75,6 +75,9 @@ pub struct FormFactors {
     pub seed: u64,
 }
 
+/// Form factors at least this large count as significant for the reciprocity figure.
+pub const SIGNIFICANT: f64 = 1e-3;
+
 /// Physical diagnostics of a form-factor matrix.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Diagnostics {
@@ -86,6 +89,14 @@ pub struct Diagnostics {
     pub max_row: usize,
     /// Worst `|A_i F_ij - A_j F_ji| / max(A_i F_ij, A_j F_ji)` over stored pairs.
     pub reciprocity: f64,
+    /// The same, over pairs where `F_ij` or `F_ji` is at least [`SIGNIFICANT`].
+    pub reciprocity_significant: f64,
+    /// Fraction of stored pairs whose reciprocity gap exceeds 3 combined standard errors.
+    pub reciprocity_beyond_3se: f64,
+    /// Rows with no stored entry (patches that see nothing, e.g. hidden under a block).
+    pub empty_rows: usize,
+    /// Rows whose sum exceeds 1 by more than 3 of its standard errors (and 1e-9).
+    pub rows_over_one: usize,
     /// Entries outside [0, 1] or not finite.
     pub out_of_range: usize,
     /// Stored entries.
@@ -183,8 +194,15 @@ impl FormFactors {
             nnz: self.f.nnz(),
             ..Default::default()
         };
+        let (mut pairs, mut beyond) = (0usize, 0usize);
         for (i, row) in self.f.outer_iterator().enumerate() {
             let s: f64 = row.data().iter().sum();
+            if row.nnz() == 0 {
+                d.empty_rows += 1;
+            }
+            if s > 1.0 + (3.0 * self.row_sum_stderr(i)).max(1e-9) {
+                d.rows_over_one += 1;
+            }
             if s < d.min_row_sum {
                 d.min_row_sum = s;
             }
@@ -196,14 +214,30 @@ impl FormFactors {
                 if !f.is_finite() || !(0.0..=1.0).contains(&f) {
                     d.out_of_range += 1;
                 }
+                let f_back = self.get(j, i);
                 let fij = self.area[i] * f;
-                let fji = self.area[j] * self.get(j, i);
+                let fji = self.area[j] * f_back;
                 let m = fij.abs().max(fji.abs());
                 if m > 0.0 {
-                    d.reciprocity = d.reciprocity.max((fij - fji).abs() / m);
+                    let gap = (fij - fji).abs();
+                    d.reciprocity = d.reciprocity.max(gap / m);
+                    if f.max(f_back) >= SIGNIFICANT {
+                        d.reciprocity_significant = d.reciprocity_significant.max(gap / m);
+                    }
+                    let se =
+                        (self.area[i] * self.stderr(i, j)).hypot(self.area[j] * self.stderr(j, i));
+                    pairs += 1;
+                    if gap > 3.0 * se && gap > 1e-12 * m {
+                        beyond += 1;
+                    }
                 }
             }
         }
+        d.reciprocity_beyond_3se = if pairs > 0 {
+            beyond as f64 / pairs as f64
+        } else {
+            0.0
+        };
         if n == 0 {
             d.min_row_sum = 0.0;
             d.max_row_sum = 0.0;

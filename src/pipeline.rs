@@ -10,11 +10,12 @@ use std::time::Instant;
 
 use crate::error::{Error, Result};
 use crate::formfactor::{
-    self, AreaMc, Context, Estimator, Hemisphere, Nodes, Pattern, SemiAnalytic,
+    self, AreaMc, Context, Estimator, Hemicube, Hemisphere, Nodes, Pattern, SemiAnalytic,
 };
 use crate::matrix::{Diagnostics, FormFactors};
 use crate::mesh::{PatchSet, Resolution};
 use crate::output::{self, Exposure};
+use crate::repair::{self, Repair, RepairReport};
 use crate::scene::Scene;
 use crate::solve::{self, Method, Options, SolveReport, System};
 use crate::store;
@@ -36,6 +37,18 @@ pub enum EstimatorChoice {
         strata: usize,
         /// Replicates.
         replicates: usize,
+    },
+    /// Area-to-area randomized QMC: Owen-scrambled Sobol point pairs.
+    AreaSobol {
+        /// Points per replicate are `strata²` (a power of 2 suits Sobol best).
+        strata: usize,
+        /// Replicates (independent scrambles).
+        replicates: usize,
+    },
+    /// The hemicube: delta form factors of `res x res` cells, one ray per cell centre.
+    Hemicube {
+        /// Cells per side of the top face.
+        res: usize,
     },
     /// Hemisphere shooting: cosine-weighted rays from each patch, first hits counted.
     Hemisphere {
@@ -69,6 +82,12 @@ impl EstimatorChoice {
                 strata,
                 replicates,
             }),
+            EstimatorChoice::AreaSobol { strata, replicates } => Box::new(AreaMc {
+                pattern: Pattern::Sobol,
+                strata,
+                replicates,
+            }),
+            EstimatorChoice::Hemicube { res } => Box::new(Hemicube { res }),
             EstimatorChoice::Hemisphere { strata, replicates } => {
                 Box::new(Hemisphere { strata, replicates })
             }
@@ -114,6 +133,8 @@ pub struct BakeConfig {
     /// Progressive-refinement steps after which to write `preview-step-NNNN.png` (with the
     /// ambient term, as in the notes' real example); empty for none.
     pub steps: Vec<usize>,
+    /// Physical constraints to restore in the form factors before solving.
+    pub repair: Repair,
 }
 
 impl Default for BakeConfig {
@@ -135,6 +156,7 @@ impl Default for BakeConfig {
             crease_deg: 30.0,
             factors: None,
             steps: Vec::new(),
+            repair: Repair::None,
         }
     }
 }
@@ -181,6 +203,8 @@ pub struct BakeSummary {
     pub diagnostics: Diagnostics,
     /// Largest standard error of a row sum.
     pub max_row_sum_stderr: f64,
+    /// Bounds found (rows over 1, entries out of range) and the repair applied.
+    pub repair: RepairReport,
     /// Solver report.
     pub solve: SolveReport,
     /// Time per stage.
@@ -357,6 +381,7 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
             (ff, embree)
         }
     };
+    let (ff, repair_report) = repair::repair(&ff, cfg.repair);
     let diagnostics = ff.diagnostics();
     let max_row_sum_stderr = (0..ff.len())
         .map(|i| ff.row_sum_stderr(i))
@@ -406,6 +431,7 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         estimator: ff.estimator.clone(),
         diagnostics,
         max_row_sum_stderr,
+        repair: repair_report,
         solve: report,
         stages: timer.stages,
         peak_memory: peak_memory(),
@@ -422,6 +448,8 @@ pub struct FactorsSummary {
     pub provenance: store::Provenance,
     /// Form-factor diagnostics.
     pub diagnostics: Diagnostics,
+    /// Bounds found and the repair applied.
+    pub repair: RepairReport,
     /// Time per stage.
     pub stages: Vec<StageTime>,
     /// Peak resident memory in bytes.
@@ -435,6 +463,7 @@ pub fn factors(
     estimator: &EstimatorChoice,
     seed: u64,
     out_dir: &std::path::Path,
+    repair: Repair,
     obs: &dyn Observer,
 ) -> Result<FactorsSummary> {
     let mut timer = Timer {
@@ -449,11 +478,13 @@ pub fn factors(
     })?;
     let (ff, stages, _) = form_factors(&patches, estimator, seed, obs)?;
     timer.stages.extend(stages);
+    let (ff, repair_report) = repair::repair(&ff, repair);
     let diagnostics = ff.diagnostics();
     let provenance = timer.run("write", 0, || store::write(out_dir, &patches, &ff))?;
     Ok(FactorsSummary {
         provenance,
         diagnostics,
+        repair: repair_report,
         stages: timer.stages,
         peak_memory: peak_memory(),
     })
@@ -486,15 +517,32 @@ pub fn format_summary(s: &BakeSummary) -> String {
     let d = &s.diagnostics;
     let _ = writeln!(
         o,
-        "  row sums in [{:.5}, {:.5}] (worst at patch {}, row-sum std. error <= {:.1e}); reciprocity error <= {:.1e}; {} stored factors{}",
-        d.min_row_sum,
+        "  row sums in [{:.5}, {:.5}] (row-sum std. error <= {:.1e}); {} rows over 1 beyond 3 std. errors; {} patches see nothing",
+        d.min_row_sum.max(0.0),
         d.max_row_sum,
-        d.max_row,
         s.max_row_sum_stderr,
-        d.reciprocity,
+        d.rows_over_one,
+        d.empty_rows
+    );
+    let _ = writeln!(
+        o,
+        "  reciprocity: worst relative gap {:.1e} over factors >= {:.0e}, {:.2}% of pairs beyond 3 std. errors; {} stored factors{}",
+        d.reciprocity_significant,
+        crate::matrix::SIGNIFICANT,
+        100.0 * d.reciprocity_beyond_3se,
         d.nnz,
         if d.out_of_range > 0 { format!("; {} OUT OF [0, 1]", d.out_of_range) } else { String::new() }
     );
+    let _ = writeln!(o, "  bounds: {}", s.repair.before.summary());
+    if s.repair.repair != Repair::None {
+        let _ = writeln!(
+            o,
+            "  repair {:?}: entries moved by <= {:.2} standard errors; after: {}",
+            s.repair.repair,
+            s.repair.max_shift_sigmas,
+            s.repair.after.summary()
+        );
+    }
     let _ = writeln!(
         o,
         "solve: {} in {} iterations, relative residual {:.2e}{}",

@@ -5,3 +5,4 @@ mod formfactors;
 mod invalid;
 mod shelf;
 mod stability;
+mod study;

@@ -9,7 +9,13 @@
 //! `F_ba = A_a I` (radiosidade.md, "Fator de Forma" and "Teorema da Reciprocidade").
 //! Points are independent uniform ([`Pattern::Uniform`]) or jittered on an `s x s` grid of
 //! strata of each patch with the strata of b randomly paired with those of a
-//! ([`Pattern::Stratified`], a Latin pairing that keeps the 4D estimate unbiased). The
+//! ([`Pattern::Stratified`], a Latin pairing that keeps the 4D estimate unbiased), or are
+//! the first `n` points of a 4D Owen-scrambled Sobol sequence, `(x_u, x_v, y_u, y_v)`
+//! ([`Pattern::Sobol`]: randomized quasi-Monte Carlo with Burley's hash-based Owen
+//! scrambling and index shuffling, "Practical Hash-based Owen Scrambling", JCGT 2020, via
+//! the `sobol_burley` crate). Each replicate of each pair gets its own scramble seed, drawn
+//! from the `(seed, a, b, replicate)` stream, so the replicates are independent and each is
+//! unbiased; their spread gives the standard error, as for the other patterns. The
 //! standard error is the standard deviation of the replicate means over `sqrt(R)`.
 //!
 //! Pairs with one patch wholly behind the other's plane are culled without rays; a sample
@@ -32,6 +38,8 @@ pub enum Pattern {
     Uniform,
     /// Jittered strata on each patch, strata paired by a random permutation.
     Stratified,
+    /// Owen-scrambled 4D Sobol points (randomized QMC); best with `strata²` a power of 2.
+    Sobol,
 }
 
 /// Area-to-area Monte Carlo estimator.
@@ -76,6 +84,7 @@ impl Estimator for AreaMc {
         let kind = match self.pattern {
             Pattern::Uniform => "area-uniform",
             Pattern::Stratified => "area-stratified",
+            Pattern::Sobol => "area-sobol",
         };
         format!(
             "{kind}(pairs={}x{}x{})",
@@ -105,60 +114,86 @@ impl AreaMc {
         row: &mut Row,
         visible: &mut dyn FnMut(Vec3, Vec3, Vec3, Vec3) -> bool,
     ) {
+        for b in a + 1..ctx.patches.len() {
+            if let Some(e) = self.pair_with(ctx, a, b, &mut row.rays, visible) {
+                row.entries.push(e);
+            }
+        }
+    }
+
+    /// The entry `F_ab` of the unordered pair (a, b) (`F_ba` follows by reciprocity), or
+    /// `None` when the pair is culled or no sample sees anything; `rays` counts the rays.
+    pub fn pair_with(
+        &self,
+        ctx: &Context,
+        a: usize,
+        b: usize,
+        rays: &mut u64,
+        visible: &mut dyn FnMut(Vec3, Vec3, Vec3, Vec3) -> bool,
+    ) -> Option<Entry> {
         let p = ctx.patches;
+        if behind(ctx, a, b) || behind(ctx, b, a) {
+            return None;
+        }
         let m = self.strata * self.strata;
         let reps = self.replicates.max(2);
         let mut xs = Vec::with_capacity(m);
         let mut ys = Vec::with_capacity(m);
         let mut means = vec![0.0f64; reps];
-        let n_a = p.normal[a];
-        for b in a + 1..p.len() {
-            if behind(ctx, a, b) || behind(ctx, b, a) {
-                continue;
-            }
-            let n_b = p.normal[b];
-            for (r, mean) in means.iter_mut().enumerate() {
-                let mut rng = Pcg32::keyed(ctx.seed, a as u64, b as u64, r as u64);
-                match self.pattern {
-                    Pattern::Stratified => {
-                        jittered(&mut rng, self.strata, &mut xs);
-                        jittered(&mut rng, self.strata, &mut ys);
-                        shuffle(&mut rng, &mut ys);
-                    }
-                    Pattern::Uniform => {
-                        xs.clear();
-                        ys.clear();
-                        for _ in 0..m {
-                            xs.push((rng.next_f64(), rng.next_f64()));
-                            ys.push((rng.next_f64(), rng.next_f64()));
-                        }
+        let (n_a, n_b) = (p.normal[a], p.normal[b]);
+        for (r, mean) in means.iter_mut().enumerate() {
+            let mut rng = Pcg32::keyed(ctx.seed, a as u64, b as u64, r as u64);
+            match self.pattern {
+                Pattern::Stratified => {
+                    jittered(&mut rng, self.strata, &mut xs);
+                    jittered(&mut rng, self.strata, &mut ys);
+                    shuffle(&mut rng, &mut ys);
+                }
+                Pattern::Sobol => {
+                    // Owen scrambling with a fresh seed per replicate.
+                    let scramble = rng.next_u32();
+                    xs.clear();
+                    ys.clear();
+                    for k in 0..m as u32 {
+                        let q = sobol_burley::sample_4d(k, 0, scramble);
+                        xs.push((q[0] as f64, q[1] as f64));
+                        ys.push((q[2] as f64, q[3] as f64));
                     }
                 }
-                let mut sum = 0.0f64;
-                for k in 0..m {
-                    let x = p.sample_point(a, xs[k].0, xs[k].1);
-                    let y = p.sample_point(b, ys[k].0, ys[k].1);
-                    if let Some(g) = kernel(x, n_a, y, n_b) {
-                        row.rays += 1;
-                        if visible(x, n_a, y, n_b) {
-                            sum += g;
-                        }
+                Pattern::Uniform => {
+                    xs.clear();
+                    ys.clear();
+                    for _ in 0..m {
+                        xs.push((rng.next_f64(), rng.next_f64()));
+                        ys.push((rng.next_f64(), rng.next_f64()));
                     }
                 }
-                *mean = sum / m as f64;
             }
-            let avg = means.iter().sum::<f64>() / reps as f64;
-            if avg > 0.0 {
-                let var = means.iter().map(|v| (v - avg).powi(2)).sum::<f64>() / (reps - 1) as f64;
-                let se = (var / reps as f64).sqrt();
-                let area_b = p.area[b];
-                row.entries.push(Entry {
-                    j: b as u32,
-                    f: avg * area_b,
-                    se: se * area_b,
-                });
+            let mut sum = 0.0f64;
+            for k in 0..m {
+                let x = p.sample_point(a, xs[k].0, xs[k].1);
+                let y = p.sample_point(b, ys[k].0, ys[k].1);
+                if let Some(g) = kernel(x, n_a, y, n_b) {
+                    *rays += 1;
+                    if visible(x, n_a, y, n_b) {
+                        sum += g;
+                    }
+                }
             }
+            *mean = sum / m as f64;
         }
+        let avg = means.iter().sum::<f64>() / reps as f64;
+        if avg <= 0.0 {
+            return None;
+        }
+        let var = means.iter().map(|v| (v - avg).powi(2)).sum::<f64>() / (reps - 1) as f64;
+        let se = (var / reps as f64).sqrt();
+        let area_b = p.area[b];
+        Some(Entry {
+            j: b as u32,
+            f: avg * area_b,
+            se: se * area_b,
+        })
     }
 }
 

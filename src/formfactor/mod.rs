@@ -13,6 +13,7 @@
 //! matrix reciprocal by construction.
 
 pub mod area;
+pub mod hemicube;
 pub mod hemisphere;
 pub mod semi;
 
@@ -26,6 +27,7 @@ use crate::mesh::PatchSet;
 use crate::visibility::Visibility;
 
 pub use area::{AreaMc, Pattern};
+pub use hemicube::Hemicube;
 pub use hemisphere::Hemisphere;
 pub use semi::{Nodes, SemiAnalytic};
 

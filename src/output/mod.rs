@@ -15,6 +15,7 @@
 //! Every writer goes through [`write_atomic`]: a file is either written whole or not at
 //! all, so an interrupted run never leaves a truncated bake that looks valid.
 
+pub mod chart;
 pub mod exr;
 pub mod ply;
 pub mod preview;

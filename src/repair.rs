@@ -1,0 +1,352 @@
+//! Physical bounds of a form-factor matrix, and repairs that use the standard errors.
+//!
+//! Exact form factors obey (radiosidade.md, "Teorema da Reciprocidade"; Cohen and Wallace
+//! 1993, §4.2):
+//! - `0 <= F_ij <= 1`, and every row sums to at most 1 (exactly 1 in a closed scene);
+//! - reciprocity, `A_i F_ij = A_j F_ji`.
+//!
+//! Estimates break these by their noise. [`check`] reports every row whose sum exceeds 1
+//! and every entry outside `[0, 1]`; nothing is ever silently kept or clipped. [`repair`]
+//! optionally restores the constraints by the smallest change measured in standard errors,
+//! that is, the weighted least-squares projection
+//! `min Σ ((F'_ij - F_ij) / σ_ij)²` subject to the constraint:
+//!
+//! - **reciprocity**: for each stored pair, `g = A_i F_ij` and `g' = A_j F_ji` are replaced
+//!   by their inverse-variance weighted mean `(g/v + g'/v') / (1/v + 1/v')`, whose variance
+//!   is `1/(1/v + 1/v')` (an entry with standard error 0 is exact and wins);
+//! - **closure** (closed scenes only): row i's deficit `1 - S_i` is shared in proportion to
+//!   the variances, `δ_ij = σ_ij² (1 - S_i) / Σ_k σ_ik²`; the standard errors become the
+//!   conditional ones, `σ_ij² - σ_ij⁴ / Σ_k σ_ik²`. A row whose entries all have standard
+//!   error 0 (a deterministic estimator) is scaled to sum 1 instead;
+//! - **both**: the two projections alternate until neither moves an entry by more than
+//!   `1e-12` (alternating projections onto two affine sets in the same metric converge to
+//!   their intersection).
+//!
+//! The sparsity pattern is kept: entries that were not stored are not created (a pair
+//! stored in one direction only is left as it is by reciprocity).
+
+use crate::matrix::FormFactors;
+
+/// Which constraints [`repair`] enforces.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Repair {
+    /// Leave the matrix as estimated (still checked and reported).
+    #[default]
+    None,
+    /// `A_i F_ij = A_j F_ji` by error-weighted means.
+    Reciprocity,
+    /// Rows sum to 1 (closed scenes), by a least-squares correction.
+    Closure,
+    /// Both, alternately until they hold together.
+    Both,
+}
+
+/// A row whose sum exceeds 1.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RowOver {
+    /// Row (emitting patch).
+    pub row: usize,
+    /// Its sum.
+    pub sum: f64,
+    /// Standard error of the sum.
+    pub se: f64,
+}
+
+impl RowOver {
+    /// How many standard errors the sum exceeds 1 by (infinite for an exact row).
+    pub fn sigmas(&self) -> f64 {
+        if self.se > 0.0 {
+            (self.sum - 1.0) / self.se
+        } else {
+            f64::INFINITY
+        }
+    }
+}
+
+/// What [`check`] found.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Bounds {
+    /// Rows summing to more than 1, in row order.
+    pub rows_over_one: Vec<RowOver>,
+    /// Entries outside `[0, 1]` or not finite: `(i, j, F_ij)`.
+    pub out_of_range: Vec<(usize, usize, f64)>,
+}
+
+impl Bounds {
+    /// Rows over 1 by more than `k` standard errors (not explained by the noise).
+    pub fn significant(&self, k: f64) -> usize {
+        self.rows_over_one.iter().filter(|r| r.sigmas() > k).count()
+    }
+
+    /// One line for summaries.
+    pub fn summary(&self) -> String {
+        let worst = self
+            .rows_over_one
+            .iter()
+            .max_by(|a, b| a.sum.total_cmp(&b.sum));
+        let mut s = format!(
+            "{} rows sum over 1 ({} by more than 3 standard errors)",
+            self.rows_over_one.len(),
+            self.significant(3.0)
+        );
+        if let Some(w) = worst {
+            s += &format!(", worst row {} = {:.6} ± {:.1e}", w.row, w.sum, w.se);
+        }
+        if !self.out_of_range.is_empty() {
+            s += &format!("; {} entries OUT OF [0, 1]", self.out_of_range.len());
+        }
+        s
+    }
+}
+
+/// Rows summing over 1 and entries outside `[0, 1]`.
+pub fn check(ff: &FormFactors) -> Bounds {
+    let mut b = Bounds::default();
+    for (i, row) in ff.f.outer_iterator().enumerate() {
+        let sum: f64 = row.data().iter().sum();
+        if sum > 1.0 || !sum.is_finite() {
+            b.rows_over_one.push(RowOver {
+                row: i,
+                sum,
+                se: ff.row_sum_stderr(i),
+            });
+        }
+        for (j, &f) in row.iter() {
+            if !f.is_finite() || !(0.0..=1.0).contains(&f) {
+                b.out_of_range.push((i, j, f));
+            }
+        }
+    }
+    b
+}
+
+/// What [`repair`] changed.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RepairReport {
+    /// The repair applied.
+    pub repair: Repair,
+    /// Bounds before the repair.
+    pub before: Bounds,
+    /// Bounds after the repair.
+    pub after: Bounds,
+    /// Largest `|F'_ij - F_ij| / σ_ij` over entries with `σ_ij > 0`.
+    pub max_shift_sigmas: f64,
+    /// Alternating rounds (1 for a single constraint, 0 for none).
+    pub rounds: usize,
+}
+
+/// Applies `how` to a copy of `ff` (same sparsity pattern) and reports bounds before and
+/// after.
+pub fn repair(ff: &FormFactors, how: Repair) -> (FormFactors, RepairReport) {
+    let before = check(ff);
+    let mut out = ff.clone();
+    let sigma0 = ff.se.clone();
+    let rounds = match how {
+        Repair::None => 0,
+        Repair::Reciprocity => {
+            reciprocity(&mut out, &sigma0, true);
+            1
+        }
+        Repair::Closure => {
+            closure(&mut out, &sigma0, true);
+            1
+        }
+        Repair::Both => {
+            // Standard errors from one pass of each; values iterate in the fixed metric.
+            reciprocity(&mut out, &sigma0, true);
+            let metric = out.se.clone();
+            closure(&mut out, &metric, true);
+            let mut rounds = 1;
+            while rounds < 1000 {
+                let prev = out.f.data().to_vec();
+                reciprocity(&mut out, &metric, false);
+                closure(&mut out, &metric, false);
+                rounds += 1;
+                let moved = prev
+                    .iter()
+                    .zip(out.f.data())
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max);
+                if moved <= 1e-12 {
+                    break;
+                }
+            }
+            rounds
+        }
+    };
+    let max_shift_sigmas =
+        ff.f.data()
+            .iter()
+            .zip(out.f.data())
+            .zip(&sigma0)
+            .filter(|(_, &s)| s > 0.0)
+            .map(|((a, b), s)| (a - b).abs() / s)
+            .fold(0.0, f64::max);
+    let after = check(&out);
+    (
+        out,
+        RepairReport {
+            repair: how,
+            before,
+            after,
+            max_shift_sigmas,
+            rounds,
+        },
+    )
+}
+
+/// Index into `data` of the stored entry (i, j).
+fn slot(ff: &FormFactors, i: usize, j: usize) -> Option<usize> {
+    ff.f.nnz_index(i, j).map(|k| k.0)
+}
+
+/// Inverse-variance weighted mean of `A_i F_ij` and `A_j F_ji` for every pair stored both
+/// ways, with `sigma` the standard errors used as weights; `update_se` also stores the
+/// standard error of the mean.
+fn reciprocity(ff: &mut FormFactors, sigma: &[f64], update_se: bool) {
+    let n = ff.len();
+    let area = ff.area.clone();
+    let mut changes: Vec<(usize, f64, f64)> = Vec::new();
+    for i in 0..n {
+        let (lo, hi) = (ff.f.indptr().index(i), ff.f.indptr().index(i + 1));
+        for k in lo..hi {
+            let j = ff.f.indices()[k];
+            if j <= i {
+                continue;
+            }
+            let Some(kt) = slot(ff, j, i) else { continue };
+            let (g1, g2) = (area[i] * ff.f.data()[k], area[j] * ff.f.data()[kt]);
+            let (v1, v2) = ((area[i] * sigma[k]).powi(2), (area[j] * sigma[kt]).powi(2));
+            let (g, v) = if v1 == 0.0 && v2 == 0.0 {
+                (0.5 * (g1 + g2), 0.0)
+            } else if v1 == 0.0 {
+                (g1, 0.0)
+            } else if v2 == 0.0 {
+                (g2, 0.0)
+            } else {
+                let (w1, w2) = (1.0 / v1, 1.0 / v2);
+                ((g1 * w1 + g2 * w2) / (w1 + w2), 1.0 / (w1 + w2))
+            };
+            let s = v.sqrt();
+            changes.push((k, g / area[i], s / area[i]));
+            changes.push((kt, g / area[j], s / area[j]));
+        }
+    }
+    for (k, f, s) in changes {
+        ff.f.data_mut()[k] = f;
+        if update_se {
+            ff.se[k] = s;
+        }
+    }
+}
+
+/// Weighted least-squares correction of each row to sum 1 (see the module docs).
+#[allow(clippy::needless_range_loop)] // indexes two parallel arrays
+fn closure(ff: &mut FormFactors, sigma: &[f64], update_se: bool) {
+    let n = ff.len();
+    for i in 0..n {
+        let (lo, hi) = (ff.f.indptr().index(i), ff.f.indptr().index(i + 1));
+        if lo == hi {
+            continue;
+        }
+        let sum: f64 = ff.f.data()[lo..hi].iter().sum();
+        let var: f64 = sigma[lo..hi].iter().map(|s| s * s).sum();
+        let deficit = 1.0 - sum;
+        if var > 0.0 {
+            for k in lo..hi {
+                let v = sigma[k] * sigma[k];
+                ff.f.data_mut()[k] += v * deficit / var;
+                if update_se {
+                    ff.se[k] = (v - v * v / var).max(0.0).sqrt();
+                }
+            }
+        } else if sum > 0.0 {
+            for k in lo..hi {
+                ff.f.data_mut()[k] /= sum;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::formfactor::Entry;
+
+    fn matrix(rows: Vec<Vec<(u32, f64, f64)>>, area: Vec<f64>) -> FormFactors {
+        let rows = rows
+            .into_iter()
+            .map(|r| r.into_iter().map(|(j, f, se)| Entry { j, f, se }).collect())
+            .collect();
+        FormFactors::from_rows(rows, area, 0, 0.0, "test".into(), 0)
+    }
+
+    #[test]
+    fn a_row_over_one_is_reported_and_never_kept_silently() {
+        let ff = matrix(
+            vec![
+                vec![(1, 0.7, 0.05), (2, 0.5, 0.05)],
+                vec![(0, 0.6, 0.01), (2, 0.4, 0.01)],
+                vec![(0, 0.5, 0.0), (1, 0.5, 0.0)],
+            ],
+            vec![1.0, 1.0, 1.0],
+        );
+        let b = check(&ff);
+        assert_eq!(b.rows_over_one.len(), 1);
+        assert_eq!(b.rows_over_one[0].row, 0);
+        assert!((b.rows_over_one[0].sum - 1.2).abs() < 1e-12);
+        assert!(b.summary().contains("1 rows sum over 1"), "{}", b.summary());
+        // No repair: still reported, values untouched.
+        let (same, rep) = repair(&ff, Repair::None);
+        assert_eq!(same.f, ff.f);
+        assert_eq!(rep.after.rows_over_one.len(), 1);
+        // Closure: the report keeps the finding, the repaired row sums to 1.
+        let (fixed, rep) = repair(&ff, Repair::Closure);
+        assert_eq!(rep.before.rows_over_one.len(), 1);
+        assert!((fixed.row_sum(0) - 1.0).abs() < 1e-12);
+        assert!(rep.after.rows_over_one.iter().all(|r| r.sum - 1.0 < 1e-12));
+        assert_eq!(fixed.f.nnz(), ff.f.nnz());
+    }
+
+    #[test]
+    fn reciprocity_takes_the_weighted_mean_and_keeps_the_pattern() {
+        // A_0 = 1, A_1 = 2: A_0 F_01 = 0.30 ± 0.01, A_1 F_10 = 2 × 0.16 = 0.32 ± 0.02.
+        let ff = matrix(
+            vec![
+                vec![(1, 0.30, 0.01), (2, 0.1, 0.01)],
+                vec![(0, 0.16, 0.01)],
+                vec![],
+            ],
+            vec![1.0, 2.0, 1.0],
+        );
+        let (r, _) = repair(&ff, Repair::Reciprocity);
+        let (w1, w2) = (1.0 / 0.01f64.powi(2), 1.0 / 0.02f64.powi(2));
+        let g = (0.30 * w1 + 0.32 * w2) / (w1 + w2);
+        assert!((r.get(0, 1) - g).abs() < 1e-12);
+        assert!((2.0 * r.get(1, 0) - g).abs() < 1e-12);
+        assert!((r.stderr(0, 1) - (1.0 / (w1 + w2)).sqrt()).abs() < 1e-12);
+        // (0, 2) has no transpose stored: kept, and (2, 0) not created.
+        assert_eq!(r.get(0, 2), 0.1);
+        assert_eq!(r.f.nnz(), ff.f.nnz());
+    }
+
+    #[test]
+    fn both_constraints_hold_together() {
+        let ff = matrix(
+            vec![
+                vec![(1, 0.45, 0.02), (2, 0.50, 0.03)],
+                vec![(0, 0.52, 0.02), (2, 0.50, 0.02)],
+                vec![(0, 0.48, 0.03), (1, 0.55, 0.01)],
+            ],
+            vec![1.0, 1.0, 1.0],
+        );
+        let (r, rep) = repair(&ff, Repair::Both);
+        for i in 0..3 {
+            assert!((r.row_sum(i) - 1.0).abs() < 1e-9, "row {i}");
+            for j in 0..3 {
+                assert!((r.get(i, j) - r.get(j, i)).abs() < 1e-9);
+            }
+        }
+        assert!(rep.rounds > 1 && rep.max_shift_sigmas < 5.0, "{rep:?}");
+    }
+}
