@@ -38,6 +38,19 @@ enum Command {
     Scenes,
     /// Compare every estimator against closed forms: CSV, charts, slopes, calibration.
     Study(StudyArgs),
+    /// Compare the solvers: residual against work and time on the closed cube (rho 0.5 to
+    /// 0.999) and the Cornell box; CSV and charts.
+    StudySolvers(StudySolversArgs),
+}
+
+#[derive(Args, Debug)]
+struct StudySolversArgs {
+    /// Output folder.
+    #[arg(short, long, default_value = "docs/solvers")]
+    output: PathBuf,
+    /// A small study (coarse meshes, two reflectances), for tests.
+    #[arg(long)]
+    quick: bool,
 }
 
 #[derive(Args, Debug)]
@@ -415,6 +428,26 @@ pub fn run() -> Result<()> {
             }
             println!(
                 "wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json}}",
+                args.output.display()
+            );
+            Ok(())
+        }
+        Command::StudySolvers(args) => {
+            let settings = if args.quick {
+                radiosity::solve::study::Settings::quick(args.output.clone())
+            } else {
+                radiosity::solve::study::Settings::full(args.output.clone())
+            };
+            let report = radiosity::solve::study::run(&settings)?;
+            for r in &report.runs {
+                println!(
+                    "{:<16} {:<13} {:>8} iterations {:>9.3}s residual {:.2e} {}",
+                    r.case, r.solver, r.iterations, r.seconds, r.residual, r.status
+                );
+            }
+            println!(
+                "wrote {} files to {}",
+                report.files.len(),
                 args.output.display()
             );
             Ok(())
