@@ -38,6 +38,19 @@ enum Command {
     Scenes,
     /// Compare every estimator against closed forms: CSV, charts, slopes, calibration.
     Study(StudyArgs),
+    /// Compare the solvers: residual against work and time on the closed cube (rho 0.5 to
+    /// 0.999) and the Cornell box; CSV and charts.
+    StudySolvers(StudySolversArgs),
+}
+
+#[derive(Args, Debug)]
+struct StudySolversArgs {
+    /// Output folder.
+    #[arg(short, long, default_value = "docs/solvers")]
+    output: PathBuf,
+    /// A small study (coarse meshes, two reflectances), for tests.
+    #[arg(long)]
+    quick: bool,
 }
 
 #[derive(Args, Debug)]
@@ -94,9 +107,16 @@ impl RepairArg {
 
 #[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 enum SolverArg {
+    /// Jacobi sweeps, rows in parallel.
     Jacobi,
+    /// Gauss-Seidel sweeps.
     GaussSeidel,
+    /// Progressive refinement by shooting.
     Progressive,
+    /// Preconditioned conjugate gradients on the symmetric form.
+    Cg,
+    /// Dense LU with partial pivoting (up to 4096 patches).
+    Direct,
 }
 
 #[derive(Args, Debug)]
@@ -219,7 +239,8 @@ struct BakeArgs {
     /// Relative residual at which the solver stops.
     #[arg(long, default_value_t = 1e-6)]
     tolerance: f64,
-    /// Iteration cap of the solver.
+    /// Iteration cap of the solver: sweeps (jacobi, gauss-seidel), iterations (cg); for
+    /// progressive, this times the patch count shots (n shots cost about one sweep).
     #[arg(long, default_value_t = 10_000)]
     max_iterations: usize,
     /// Write the result even when the solver stops before its tolerance.
@@ -234,6 +255,10 @@ struct BakeArgs {
     /// Reuse form factors stored by `radiosity factors` (same scene and subdivision).
     #[arg(long, value_name = "DIR")]
     factors: Option<PathBuf>,
+    /// Also write preview-step-NNNN.png after these progressive-refinement steps (shots),
+    /// with the ambient term, e.g. `--steps 1,2,24,100`.
+    #[arg(long, value_delimiter = ',', value_name = "N,N,...")]
+    steps: Vec<usize>,
 }
 
 #[derive(Args, Debug)]
@@ -328,6 +353,8 @@ fn bake(args: &BakeArgs) -> Result<()> {
             SolverArg::Jacobi => Method::Jacobi,
             SolverArg::GaussSeidel => Method::GaussSeidel,
             SolverArg::Progressive => Method::Progressive,
+            SolverArg::Cg => Method::Cg,
+            SolverArg::Direct => Method::Direct,
         },
         solve: Options {
             tolerance: args.tolerance,
@@ -338,6 +365,7 @@ fn bake(args: &BakeArgs) -> Result<()> {
         exposure: parse_exposure(&args.exposure)?,
         crease_deg: 30.0,
         factors: args.factors.clone(),
+        steps: args.steps.clone(),
         repair: args.est.repair.repair(),
     };
     let bars = Bars {
@@ -346,6 +374,13 @@ fn bake(args: &BakeArgs) -> Result<()> {
     };
     let summary = pipeline::bake(&cfg, &bars)?;
     print!("{}", pipeline::format_summary(&summary));
+    if !summary.solve.converged {
+        eprintln!(
+            "warning: {} stopped before its tolerance (relative residual {:.3e}); the result \
+             was written because of --keep-partial",
+            summary.solve.solver, summary.solve.residual
+        );
+    }
     Ok(())
 }
 
@@ -393,6 +428,26 @@ pub fn run() -> Result<()> {
             }
             println!(
                 "wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json}}",
+                args.output.display()
+            );
+            Ok(())
+        }
+        Command::StudySolvers(args) => {
+            let settings = if args.quick {
+                radiosity::solve::study::Settings::quick(args.output.clone())
+            } else {
+                radiosity::solve::study::Settings::full(args.output.clone())
+            };
+            let report = radiosity::solve::study::run(&settings)?;
+            for r in &report.runs {
+                println!(
+                    "{:<16} {:<13} {:>8} iterations {:>9.3}s residual {:.2e} {}",
+                    r.case, r.solver, r.iterations, r.seconds, r.residual, r.status
+                );
+            }
+            println!(
+                "wrote {} files to {}",
+                report.files.len(),
                 args.output.display()
             );
             Ok(())

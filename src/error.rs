@@ -2,7 +2,7 @@
 //! the file and line, the material or patch, or the Embree message.
 //!
 //! Grouped by what the user can do about it: fix the input (`Io`, `Parse`, `Material`,
-//! `Scene`, `UnknownScene`, `Mismatch`), change the settings (`Config`, `NotConverged`),
+//! `Scene`, `UnknownScene`, `Mismatch`), change the settings (`Config`, `NotConverged`, `Singular`),
 //! or report a bug / a broken install (`Embree`, `Output`).
 
 use std::path::PathBuf;
@@ -81,6 +81,16 @@ pub enum Error {
         tolerance: f64,
         /// A suggestion, starting with "; ".
         hint: String,
+    },
+    /// The radiosity system has no physical solution the solver can return: singular or
+    /// nearly so (a closed scene with `rho -> 1`), or a form-factor matrix whose rows sum so
+    /// far above 1 that `diag(rho) F` has spectral radius 1 or more.
+    #[error("{solver}: the radiosity system is singular or unphysical: {msg}")]
+    Singular {
+        /// The solver's name.
+        solver: String,
+        /// What was found and what to do about it.
+        msg: String,
     },
     /// Embree reported an error.
     #[error("Embree: {0}")]

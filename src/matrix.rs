@@ -3,10 +3,58 @@
 //!
 //! Properties checked (radiosidade.md, "Teorema da Reciprocidade"): in a closed
 //! environment every row sums to 1, and `A_i F_ij = A_j F_ji`.
+//!
+//! Repair ([`repair_row_sums`]): a Monte Carlo row may sum above 1 by noise; when
+//! `rho_i * sum_j F_ij >= 1` somewhere, the bound that guarantees a bounded, convergent solve
+//! is lost (Cohen and Wallace 1993, §5.3), so the pipeline scales those rows to sum to 1.
 
 use sprs::{CsMat, TriMat};
 
 use crate::formfactor::Entry;
+
+/// What [`repair_row_sums`] changed.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RowRepair {
+    /// Rows scaled down to sum to 1.
+    pub rows: Vec<usize>,
+    /// The largest `rho_i * sum_j F_ij` before the repair (largest channel).
+    pub worst_gain: f64,
+    /// The patch where it was reached, and its row sum.
+    pub worst: (usize, f64),
+}
+
+/// Scales to sum 1 every row `i` of `f` with `rho_i * sum_j F_ij >= 1` in some channel (a row
+/// of a physical `F` sums to at most 1, so only noise or a broken estimate can do this), and
+/// returns the repaired copy, or `None` when no row needs it. After the repair
+/// `max_i rho_i sum_j |F_ij| <= max rho < 1`, which bounds the spectral radius of
+/// `diag(rho) F` below 1: every solver converges and `B` stays bounded.
+pub fn repair_row_sums(f: &CsMat<f64>, rho: &[[f64; 3]]) -> Option<(CsMat<f64>, RowRepair)> {
+    let mut rep = RowRepair::default();
+    let mut scale = vec![1.0; f.rows()];
+    for (i, row) in f.outer_iterator().enumerate() {
+        let sum: f64 = row.data().iter().sum();
+        let r = rho.get(i).map_or(0.0, |r| r[0].max(r[1]).max(r[2]));
+        let gain = r * sum;
+        if gain > rep.worst_gain {
+            rep.worst_gain = gain;
+            rep.worst = (i, sum);
+        }
+        if gain >= 1.0 && sum > 0.0 {
+            rep.rows.push(i);
+            scale[i] = 1.0 / sum;
+        }
+    }
+    if rep.rows.is_empty() {
+        return None;
+    }
+    let mut g = f.clone();
+    let ptr = g.indptr().to_proper().into_owned();
+    let data = g.data_mut();
+    for (i, s) in scale.iter().enumerate() {
+        data[ptr[i]..ptr[i + 1]].iter_mut().for_each(|v| *v *= s);
+    }
+    Some((g, rep))
+}
 
 /// A form-factor matrix and how it was made.
 #[derive(Clone, Debug)]
@@ -206,5 +254,30 @@ impl FormFactors {
             }
         }
         t
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn repair_scales_only_rows_past_the_bound() {
+        let mut t = TriMat::new((3, 3));
+        t.add_triplet(0, 1, 0.7);
+        t.add_triplet(0, 2, 0.5); // 1.2 * 0.9 >= 1: repaired
+        t.add_triplet(1, 0, 0.6);
+        t.add_triplet(1, 2, 0.5); // 1.1 * 0.5 < 1: kept
+        t.add_triplet(2, 0, 0.3);
+        let f: CsMat<f64> = t.to_csr();
+        let rho = [[0.9, 0.1, 0.1], [0.5; 3], [0.5; 3]];
+        let (g, rep) = repair_row_sums(&f, &rho).unwrap();
+        assert_eq!(rep.rows, vec![0]);
+        assert_eq!(rep.worst.0, 0);
+        assert!((rep.worst_gain - 1.08).abs() < 1e-12);
+        let s0: f64 = g.outer_view(0).unwrap().data().iter().sum();
+        assert!((s0 - 1.0).abs() < 1e-15);
+        assert_eq!(g.get(1, 2), Some(&0.5));
+        assert!(repair_row_sums(&f, &[[0.5; 3]; 3]).is_none());
     }
 }

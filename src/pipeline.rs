@@ -130,6 +130,9 @@ pub struct BakeConfig {
     pub crease_deg: f32,
     /// Reuse the form factors stored in this folder instead of casting rays.
     pub factors: Option<PathBuf>,
+    /// Progressive-refinement steps after which to write `preview-step-NNNN.png` (with the
+    /// ambient term, as in the notes' real example); empty for none.
+    pub steps: Vec<usize>,
     /// Physical constraints to restore in the form factors before solving.
     pub repair: Repair,
 }
@@ -152,6 +155,7 @@ impl Default for BakeConfig {
             exposure: Exposure::Auto,
             crease_deg: 30.0,
             factors: None,
+            steps: Vec::new(),
             repair: Repair::None,
         }
     }
@@ -284,6 +288,12 @@ pub fn form_factors(
 }
 
 /// Solves for patch radiosity.
+///
+/// `opts.max_iterations` is read as a command-line cap and scaled per method by
+/// [`Method::iteration_cap`] (progressive refinement gets `max_iterations * patches` shots).
+/// When some row has `rho_i * sum_j F_ij >= 1` (Monte Carlo noise in a closed scene with high
+/// reflectances), those rows are scaled to sum to 1 first ([`crate::matrix::repair_row_sums`])
+/// so that the solve stays bounded, and the report's notes say so.
 pub fn solve_radiosity(
     patches: &PatchSet,
     ff: &FormFactors,
@@ -292,8 +302,59 @@ pub fn solve_radiosity(
 ) -> Result<(Vec<[f64; 3]>, SolveReport)> {
     let rho: Vec<[f64; 3]> = (0..patches.len()).map(|i| patches.rho(i)).collect();
     let emit: Vec<[f64; 3]> = (0..patches.len()).map(|i| patches.emit(i)).collect();
-    let sys = System::new(&ff.f, &rho, &emit, &patches.area)?;
-    solve::solve(method, &sys, opts)
+    let repaired = crate::matrix::repair_row_sums(&ff.f, &rho);
+    let f = repaired.as_ref().map_or(&ff.f, |r| &r.0);
+    let sys = System::new(f, &rho, &emit, &patches.area)?;
+    let opts = Options {
+        max_iterations: method.iteration_cap(opts.max_iterations, patches.len()),
+        ..*opts
+    };
+    let (b, mut report) = solve::solve(method, &sys, &opts)?;
+    if let Some((_, rep)) = &repaired {
+        report.notes.insert(
+            0,
+            format!(
+                "{} rows of F had rho * (row sum) >= 1 (worst {:.4} at patch {}, row sum {:.4}, \
+                 row-sum std. error {:.1e}) and were scaled to sum to 1, so that the solve stays \
+                 bounded: raise the samples if this is more than noise",
+                rep.rows.len(),
+                rep.worst_gain,
+                rep.worst.0,
+                rep.worst.1,
+                ff.row_sum_stderr(rep.worst.0)
+            ),
+        );
+    }
+    Ok((b, report))
+}
+
+/// Writes `preview-step-NNNN.png` in `dir` for each of `steps` progressive-refinement steps,
+/// with the ambient term ([`solve::progressive_steps`]), rows repaired as in
+/// [`solve_radiosity`]. All steps share `exposure` (the bake passes the final preview's), so
+/// that they can be compared.
+pub fn write_step_previews(
+    patches: &PatchSet,
+    ff: &FormFactors,
+    steps: &[usize],
+    cfg: &BakeConfig,
+    camera: &crate::scene::Camera,
+    exposure: Exposure,
+) -> Result<Vec<PathBuf>> {
+    let rho: Vec<[f64; 3]> = (0..patches.len()).map(|i| patches.rho(i)).collect();
+    let emit: Vec<[f64; 3]> = (0..patches.len()).map(|i| patches.emit(i)).collect();
+    let repaired = crate::matrix::repair_row_sums(&ff.f, &rho);
+    let f = repaired.as_ref().map_or(&ff.f, |r| &r.0);
+    let sys = System::new(f, &rho, &emit, &patches.area)?;
+    let mut files = Vec::new();
+    for (k, b) in solve::progressive_steps(&sys, steps)? {
+        let verts = output::interpolate(patches, &b, cfg.crease_deg);
+        let (w, h) = cfg.preview;
+        let image = output::render_preview(&verts, camera, w, h, exposure);
+        let png = cfg.out_dir.join(format!("preview-step-{k:04}.png"));
+        output::write_png(&png, &image)?;
+        files.push(png);
+    }
+    Ok(files)
 }
 
 /// Runs the whole bake and writes `radiosity.exr`, `mesh.ply` and `preview.png`.
@@ -348,7 +409,18 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         output::write_png(&png, &image)?;
         let ply = cfg.out_dir.join("mesh.ply");
         output::write_ply(&ply, &verts, image.exposure)?;
-        Ok(vec![exr, ply, png])
+        let mut files = vec![exr, ply, png];
+        if !cfg.steps.is_empty() {
+            files.extend(write_step_previews(
+                &patches,
+                &ff,
+                &cfg.steps,
+                cfg,
+                &camera,
+                Exposure::Fixed(image.exposure),
+            )?);
+        }
+        Ok(files)
     })?;
     Ok(BakeSummary {
         scene: scene.name.clone(),
@@ -483,6 +555,9 @@ pub fn format_summary(s: &BakeSummary) -> String {
             " (NOT converged)"
         }
     );
+    for n in &s.solve.notes {
+        let _ = writeln!(o, "note: {n}");
+    }
     let _ = write!(o, "time:");
     for t in &s.stages {
         let _ = write!(o, " {} {:.2}s,", t.stage, t.seconds);

@@ -4,4 +4,5 @@ mod bake;
 mod formfactors;
 mod invalid;
 mod shelf;
+mod stability;
 mod study;

@@ -16,6 +16,12 @@
 //!   Wallace and Greenberg 1988, "A progressive refinement approach to fast radiosity image
 //!   generation" (SIGGRAPH '88), with its ambient term for display ([`ambient`],
 //!   [`progressive_steps`]).
+//! - [`Cg`] (`cg.rs`): preconditioned conjugate gradients on the symmetric form
+//!   `diag(A / rho) - diag(A) F` (symmetric by reciprocity), with black patches eliminated
+//!   and a defect correction that makes the answer solve the original system when a Monte
+//!   Carlo `F` is only approximately reciprocal.
+//! - [`Direct`] (`direct.rs`): dense LU with partial pivoting (`faer`), up to
+//!   [`DIRECT_MAX_PATCHES`] patches; the reference the others are tested against.
 //!
 //! ## The residual
 //! Every solver measures the same quantity, returned by [`residual`]: the relative residual
@@ -73,13 +79,23 @@ use sprs::CsMat;
 
 use crate::error::{Error, Result};
 
+pub mod cg;
+pub mod direct;
 pub mod gauss_seidel;
 pub mod jacobi;
 pub mod progressive;
+pub mod study;
 
+pub use cg::Cg;
+pub use direct::{Direct, DIRECT_MAX_PATCHES};
 pub use gauss_seidel::GaussSeidel;
 pub use jacobi::Jacobi;
 pub use progressive::{ambient, ambient_term, progressive_steps, Progressive};
+
+/// Formats bytes as MiB with one decimal.
+pub(crate) fn mib(bytes: u64) -> String {
+    format!("{:.1} MiB", bytes as f64 / (1024.0 * 1024.0))
+}
 
 /// Relative residual above which an iteration is taken to diverge.
 pub const DIVERGENCE: f64 = 1e12;
@@ -172,7 +188,8 @@ impl<'a> System<'a> {
             if rho.iter().any(|r| !(0.0..1.0).contains(r)) {
                 return Err(Error::Config(format!(
                     "patch {i}: rho = {rho:?} is outside [0, 1) (a reflectance of 1 or more \
-                     absorbs nothing and the radiosity system has no bounded solution)"
+                     absorbs nothing: in a closed scene I - diag(rho) F is then singular and \
+                     the radiosity system has no bounded solution)"
                 )));
             }
         }
@@ -282,13 +299,23 @@ pub enum Method {
     GaussSeidel,
     /// [`Progressive`].
     Progressive,
+    /// [`Cg`].
+    Cg,
+    /// [`Direct`].
+    Direct,
 }
 
 impl Method {
     /// Every method.
-    pub const ALL: [Method; 3] = [Method::Jacobi, Method::GaussSeidel, Method::Progressive];
+    pub const ALL: [Method; 5] = [
+        Method::Jacobi,
+        Method::GaussSeidel,
+        Method::Progressive,
+        Method::Cg,
+        Method::Direct,
+    ];
 
-    /// The method's name: `jacobi`, `gauss-seidel` or `progressive`.
+    /// The method's name: `jacobi`, `gauss-seidel`, `progressive`, `cg` or `direct`.
     pub fn name(self) -> &'static str {
         self.solver().name_static()
     }
@@ -298,6 +325,19 @@ impl Method {
             Method::Jacobi => &Jacobi,
             Method::GaussSeidel => &GaussSeidel,
             Method::Progressive => &Progressive,
+            Method::Cg => &Cg,
+            Method::Direct => &Direct,
+        }
+    }
+
+    /// The iteration cap to give this method for a command-line `--max-iterations` on `n`
+    /// patches. Sweeps (Jacobi, Gauss-Seidel) and CG iterations each cost about one pass over
+    /// `F`; a progressive-refinement iteration is one shot, which reads one column, so its
+    /// cap is `max_iterations * n` shots (the same number of passes' worth of work).
+    pub fn iteration_cap(self, max_iterations: usize, n: usize) -> usize {
+        match self {
+            Method::Progressive => max_iterations.saturating_mul(n.max(1)),
+            _ => max_iterations,
         }
     }
 }
@@ -325,6 +365,18 @@ impl NamedSolver for Progressive {
     }
 }
 
+impl NamedSolver for Cg {
+    fn name_static(&self) -> &'static str {
+        cg::NAME
+    }
+}
+
+impl NamedSolver for Direct {
+    fn name_static(&self) -> &'static str {
+        direct::NAME
+    }
+}
+
 impl fmt::Display for Method {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())
@@ -334,14 +386,17 @@ impl fmt::Display for Method {
 impl FromStr for Method {
     type Err = Error;
 
-    /// Parses `jacobi`, `gauss-seidel` (or `gauss_seidel`, `gs`) and `progressive`.
+    /// Parses `jacobi`, `gauss-seidel` (or `gauss_seidel`, `gs`), `progressive`, `cg` (or
+    /// `conjugate-gradient`) and `direct` (or `lu`).
     fn from_str(s: &str) -> Result<Method> {
         match s.to_ascii_lowercase().as_str() {
             "jacobi" => Ok(Method::Jacobi),
             "gauss-seidel" | "gauss_seidel" | "gaussseidel" | "gs" => Ok(Method::GaussSeidel),
             "progressive" => Ok(Method::Progressive),
+            "cg" | "conjugate-gradient" => Ok(Method::Cg),
+            "direct" | "lu" => Ok(Method::Direct),
             _ => Err(Error::Config(format!(
-                "unknown solver `{s}` (known: jacobi, gauss-seidel, progressive)"
+                "unknown solver `{s}` (known: jacobi, gauss-seidel, progressive, cg, direct)"
             ))),
         }
     }
@@ -844,16 +899,26 @@ pub(crate) mod testing {
         }
     }
 
-    /// A closed furnace: rows summing to 1 (the diagonal included), uniform rho and E.
+    /// A closed furnace: rows summing to 1 (the diagonal included), uniform rho and E, equal
+    /// areas, and `F` symmetric (so reciprocal): the average of `(Q + Q^T) / 2` over random
+    /// permutation matrices `Q` with random weights, each term doubly stochastic.
     pub fn furnace(n: usize, rho: [f64; 3], emit: [f64; 3]) -> Owned {
         let mut rng = Rng::new(7);
         let mut rows = vec![vec![0.0; n]; n];
-        for row in rows.iter_mut() {
-            for v in row.iter_mut() {
-                *v = rng.uniform();
+        let terms = n.max(1);
+        let w: Vec<f64> = (0..terms).map(|_| 0.1 + rng.uniform()).collect();
+        let total: f64 = w.iter().sum();
+        for wk in &w {
+            // A random permutation by Fisher-Yates.
+            let mut perm: Vec<usize> = (0..n).collect();
+            for i in (1..n).rev() {
+                let j = (rng.next_u64() % (i as u64 + 1)) as usize;
+                perm.swap(i, j);
             }
-            let s: f64 = row.iter().sum();
-            row.iter_mut().for_each(|v| *v /= s);
+            for (i, &j) in perm.iter().enumerate() {
+                rows[i][j] += 0.5 * wk / total;
+                rows[j][i] += 0.5 * wk / total;
+            }
         }
         let refs: Vec<&[f64]> = rows.iter().map(Vec::as_slice).collect();
         Owned {
@@ -999,7 +1064,8 @@ mod tests {
     fn cap_is_reported() {
         let owned = random(50, 8, 3);
         let sys = owned.sys();
-        for method in Method::ALL {
+        // The direct solve has no iteration cap.
+        for method in Method::ALL.into_iter().filter(|&m| m != Method::Direct) {
             let opts = Options {
                 tolerance: 1e-12,
                 max_iterations: 2,
@@ -1054,6 +1120,13 @@ mod tests {
                     assert!(hint.contains("spectral radius"), "{method}: {hint}");
                     assert!(hint.contains("rows of F sum above 1"), "{method}: {hint}");
                     assert!(residual > DIVERGENCE || !residual.is_finite());
+                }
+                // CG finds the symmetric form indefinite; the direct solve finds a negative B.
+                Err(Error::Singular { solver, msg })
+                    if matches!(method, Method::Cg | Method::Direct) =>
+                {
+                    assert_eq!(solver, method.name());
+                    assert!(msg.contains("rows of F sum above 1"), "{method}: {msg}");
                 }
                 other => panic!("{method}: expected divergence, got {other:?}"),
             }
@@ -1216,6 +1289,7 @@ mod tests {
             assert_eq!(m.solver().name(), m.name());
         }
         assert_eq!("GS".parse::<Method>().unwrap(), Method::GaussSeidel);
-        assert!(matches!("cg".parse::<Method>(), Err(Error::Config(m)) if m.contains("jacobi")));
+        assert_eq!("LU".parse::<Method>().unwrap(), Method::Direct);
+        assert!(matches!("sor".parse::<Method>(), Err(Error::Config(m)) if m.contains("cg")));
     }
 }
