@@ -89,21 +89,21 @@ impl Estimator for AreaMc {
 
     fn row(&self, ctx: &Context, a: usize, row: &mut Row) {
         let vis = ctx.vis;
-        self.row_with(ctx, a, row, &mut |x, n_x, y, n_y| {
-            vis.segment_visible(x, n_x, y, n_y)
-        });
+        self.row_with(ctx, a, row, &mut |segs, out| vis.segments_visible(segs, out));
     }
 }
 
 impl AreaMc {
-    /// Row `a` (pairs `b > a`) with `visible(x, n_x, y, n_y)` answering visibility; the
-    /// rays asked for do not depend on the answers, so a recorder sees the exact ray set.
+    /// Row `a` (pairs `b > a`) with `visible(segments, out)` answering visibility for a
+    /// batch of segment rays ([`crate::visibility::Visibility::segment_ray`], one batch per
+    /// replicate of a pair); the rays asked for do not depend on the answers, so a recorder
+    /// sees the exact ray set.
     pub fn row_with(
         &self,
         ctx: &Context,
         a: usize,
         row: &mut Row,
-        visible: &mut dyn FnMut(Vec3, Vec3, Vec3, Vec3) -> bool,
+        visible: &mut dyn FnMut(&[(Vec3, Vec3, f32)], &mut [bool]),
     ) {
         let p = ctx.patches;
         let m = self.strata * self.strata;
@@ -111,6 +111,9 @@ impl AreaMc {
         let mut xs = Vec::with_capacity(m);
         let mut ys = Vec::with_capacity(m);
         let mut means = vec![0.0f64; reps];
+        let mut segs = Vec::with_capacity(m);
+        let mut gs = Vec::with_capacity(m);
+        let mut free = vec![false; m];
         let n_a = p.normal[a];
         for b in a + 1..p.len() {
             if behind(ctx, a, b) || behind(ctx, b, a) {
@@ -134,17 +137,19 @@ impl AreaMc {
                         }
                     }
                 }
-                let mut sum = 0.0f64;
+                segs.clear();
+                gs.clear();
                 for k in 0..m {
                     let x = p.sample_point(a, xs[k].0, xs[k].1);
                     let y = p.sample_point(b, ys[k].0, ys[k].1);
                     if let Some(g) = kernel(x, n_a, y, n_b) {
-                        row.rays += 1;
-                        if visible(x, n_a, y, n_b) {
-                            sum += g;
-                        }
+                        segs.push(ctx.vis.segment_ray(x, n_a, y, n_b));
+                        gs.push(g);
                     }
                 }
+                row.rays += segs.len() as u64;
+                visible(&segs, &mut free[..segs.len()]);
+                let sum: f64 = gs.iter().zip(&free).filter(|p| *p.1).map(|p| *p.0).sum();
                 *mean = sum / m as f64;
             }
             let avg = means.iter().sum::<f64>() / reps as f64;
