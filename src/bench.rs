@@ -85,8 +85,7 @@ pub fn record(ctx: &Context, choice: &EstimatorChoice) -> Recorded {
                     match *choice {
                         EstimatorChoice::AreaStratified { strata, replicates }
                         | EstimatorChoice::AreaUniform { strata, replicates } => {
-                            let pattern = if matches!(choice, EstimatorChoice::AreaUniform { .. })
-                            {
+                            let pattern = if matches!(choice, EstimatorChoice::AreaUniform { .. }) {
                                 Pattern::Uniform
                             } else {
                                 Pattern::Stratified
@@ -125,7 +124,11 @@ pub fn raw_loop(vis: &Visibility, rec: &Recorded) -> u64 {
     match rec {
         Recorded::Segments(v) => v
             .par_chunks(4096)
-            .map(|ch| ch.iter().filter(|r| e.occluded1(r.0, r.1, 0.0, r.2)).count() as u64)
+            .map(|ch| {
+                ch.iter()
+                    .filter(|r| e.occluded1(r.0, r.1, 0.0, r.2))
+                    .count() as u64
+            })
             .sum(),
         Recorded::Rays(v) => v
             .par_chunks(4096)
@@ -180,6 +183,8 @@ pub struct RatioLine {
     pub raw: f64,
     /// Raw 16-ray packet loop, rays per second (median), for occlusion rays.
     pub raw16: Option<f64>,
+    /// The stage with the queries replaced by a recorder, rays per second (one run).
+    pub sampling: f64,
 }
 
 impl RatioLine {
@@ -198,7 +203,9 @@ fn median(mut v: Vec<f64>) -> f64 {
 /// alternating, `repeats` times each, on the current rayon pool.
 pub fn ratio(ctx: &Context, choice: &EstimatorChoice, repeats: usize) -> RatioLine {
     let est = choice.build();
+    let t = Instant::now();
     let rec = record(ctx, choice);
+    let sampling = rec.len() as f64 / t.elapsed().as_secs_f64();
     let (mut stage, mut raw, mut raw16) = (Vec::new(), Vec::new(), Vec::new());
     let mut rays = 0;
     for _ in 0..repeats.max(1) {
@@ -223,6 +230,7 @@ pub fn ratio(ctx: &Context, choice: &EstimatorChoice, repeats: usize) -> RatioLi
         stage: median(stage),
         raw: median(raw),
         raw16: (!raw16.is_empty()).then(|| median(raw16)),
+        sampling,
     }
 }
 
@@ -236,13 +244,20 @@ pub fn format_ratios(lines: &[RatioLine], threads: usize) -> String {
     );
     let _ = writeln!(
         o,
-        "{:<40} {:>8} {:>11} {:>13} {:>13} {:>15} {:>7}",
-        "estimator", "patches", "rays", "stage Mray/s", "raw1 Mray/s", "raw16 Mray/s", "ratio"
+        "{:<40} {:>8} {:>11} {:>13} {:>13} {:>15} {:>7} {:>16}",
+        "estimator",
+        "patches",
+        "rays",
+        "stage Mray/s",
+        "raw1 Mray/s",
+        "raw16 Mray/s",
+        "ratio",
+        "no-query Mray/s"
     );
     for l in lines {
         let _ = writeln!(
             o,
-            "{:<40} {:>8} {:>11} {:>13.3} {:>13.3} {:>15} {:>7.3}",
+            "{:<40} {:>8} {:>11} {:>13.3} {:>13.3} {:>15} {:>7.3} {:>16.3}",
             l.estimator,
             l.patches,
             l.rays,
@@ -251,7 +266,8 @@ pub fn format_ratios(lines: &[RatioLine], threads: usize) -> String {
             l.raw16
                 .map(|r| format!("{:.3}", r / 1e6))
                 .unwrap_or_else(|| "-".into()),
-            l.ratio()
+            l.ratio(),
+            l.sampling / 1e6
         );
     }
     o
@@ -392,7 +408,11 @@ pub fn format_stages(reports: &[StageReport]) -> String {
     let Some(first) = reports.first() else {
         return o;
     };
-    let _ = write!(o, "{:<8} {:>8} {:<34} {:>11} {:>11}", "scene", "patches", "estimator", "rays", "factors");
+    let _ = write!(
+        o,
+        "{:<8} {:>8} {:<34} {:>11} {:>11}",
+        "scene", "patches", "estimator", "rays", "factors"
+    );
     for s in &first.stages {
         let _ = write!(o, " {:>22}", format!("{} s / MiB", s.stage));
     }
@@ -504,6 +524,11 @@ fn estimators() -> [EstimatorChoice; 3] {
     ]
 }
 
+/// True for estimators whose rays grow as N² (all pairs).
+fn quadratic(c: &EstimatorChoice) -> bool {
+    !matches!(c, EstimatorChoice::Hemisphere { .. })
+}
+
 /// Runs `radiosity bench`, printing as it goes through `print`.
 pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
     let threads = if cfg.threads == 0 {
@@ -524,15 +549,30 @@ pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
         let lines: Vec<RatioLine> = pool.install(|| {
             estimators()
                 .iter()
+                .filter(|c| cfg.patches <= cfg.area_max || !quadratic(c))
                 .map(|c| ratio(&ctx, c, cfg.repeats))
                 .collect()
         });
-        print(&format!("scene `{}`, Embree {}, ftz/daz {}", cfg.scene, vis.raw().version(), if cfg.ftz { "on" } else { "off" }));
+        print(&format!(
+            "scene `{}`, Embree {}, ftz/daz {}",
+            cfg.scene,
+            vis.raw().version(),
+            if cfg.ftz { "on" } else { "off" }
+        ));
         print(&format_ratios(&lines, threads));
         let reports = pool.install(|| -> Result<Vec<StageReport>> {
             estimators()
                 .iter()
-                .map(|c| stages(&cfg.scene, Resolution::Patches(cfg.patches), c, cfg.seed, &cfg.out_dir))
+                .filter(|c| cfg.patches <= cfg.area_max || !quadratic(c))
+                .map(|c| {
+                    stages(
+                        &cfg.scene,
+                        Resolution::Patches(cfg.patches),
+                        c,
+                        cfg.seed,
+                        &cfg.out_dir,
+                    )
+                })
                 .collect()
         })?;
         print("time and peak memory per stage (one run each):");
@@ -565,7 +605,13 @@ fn scaling(
                     continue;
                 }
                 let r = pool.install(|| {
-                    stages(scene, Resolution::Patches(n), choice, cfg.seed, &cfg.out_dir)
+                    stages(
+                        scene,
+                        Resolution::Patches(n),
+                        choice,
+                        cfg.seed,
+                        &cfg.out_dir,
+                    )
                 })?;
                 print(&format_stages(std::slice::from_ref(&r)));
                 reports.push(r);
@@ -637,7 +683,10 @@ mod tests {
 
     #[test]
     fn slope_of_a_power_law() {
-        let pts: Vec<(f64, f64)> = [1.0, 2.0, 4.0, 8.0].iter().map(|&x| (x, 3.0 * x * x)).collect();
+        let pts: Vec<(f64, f64)> = [1.0, 2.0, 4.0, 8.0]
+            .iter()
+            .map(|&x| (x, 3.0 * x * x))
+            .collect();
         assert!((loglog_slope(&pts) - 2.0).abs() < 1e-12);
     }
 
@@ -668,6 +717,38 @@ mod tests {
         ] {
             let ff = formfactor::compute(&ctx, choice.build().as_ref(), &|_| {});
             assert_eq!(record(&ctx, &choice).len() as u64, ff.rays, "{choice:?}");
+        }
+    }
+
+    #[test]
+    fn factors_do_not_depend_on_the_thread_count() {
+        let scene = Scene::load("cornell").unwrap();
+        let patches = PatchSet::build(&scene, Resolution::Patches(60)).unwrap();
+        let vis = Visibility::new(&patches).unwrap();
+        let ctx = Context {
+            patches: &patches,
+            vis: &vis,
+            seed: 5,
+        };
+        for choice in [
+            EstimatorChoice::AreaStratified {
+                strata: 2,
+                replicates: 2,
+            },
+            EstimatorChoice::Hemisphere {
+                strata: 4,
+                replicates: 2,
+            },
+        ] {
+            let est = choice.build();
+            let run = |t: usize, ftz: bool| {
+                pool(t, ftz)
+                    .unwrap()
+                    .install(|| formfactor::compute(&ctx, est.as_ref(), &|_| {}))
+            };
+            let (a, b) = (run(1, false), run(3, true));
+            assert_eq!(a.f, b.f, "{choice:?}");
+            assert_eq!(a.se, b.se, "{choice:?}");
         }
     }
 }

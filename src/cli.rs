@@ -58,7 +58,7 @@ struct BenchArgs {
     /// Scaling run instead: Cornell box and cube at these patch counts (comma-separated).
     #[arg(long, value_delimiter = ',', num_args = 0.., default_missing_value = "1024,4096,16384,65536,262144")]
     scaling: Option<Vec<usize>>,
-    /// Largest patch count of the scaling run that also does area-to-area.
+    /// Largest patch count that also runs the all-pairs estimators (area, semi).
     #[arg(long, default_value_t = 1024)]
     area_max: usize,
     /// Folder for scaling.csv and scratch EXR files.

@@ -24,6 +24,7 @@ use glam::Vec3;
 
 use super::{Context, Entry, Estimator, Row};
 use crate::sampling::{jittered, shuffle, Pcg32};
+use crate::visibility::SegmentRay;
 
 /// How points are placed on each patch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -89,7 +90,9 @@ impl Estimator for AreaMc {
 
     fn row(&self, ctx: &Context, a: usize, row: &mut Row) {
         let vis = ctx.vis;
-        self.row_with(ctx, a, row, &mut |segs, out| vis.segments_visible(segs, out));
+        self.row_with(ctx, a, row, &mut |segs, out| {
+            vis.segments_visible(segs, out)
+        });
     }
 }
 
@@ -103,7 +106,7 @@ impl AreaMc {
         ctx: &Context,
         a: usize,
         row: &mut Row,
-        visible: &mut dyn FnMut(&[(Vec3, Vec3, f32)], &mut [bool]),
+        visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
     ) {
         let p = ctx.patches;
         let m = self.strata * self.strata;
@@ -120,6 +123,7 @@ impl AreaMc {
                 continue;
             }
             let n_b = p.normal[b];
+            let (on_a, on_b) = (p.sampler(a), p.sampler(b));
             for (r, mean) in means.iter_mut().enumerate() {
                 let mut rng = Pcg32::keyed(ctx.seed, a as u64, b as u64, r as u64);
                 match self.pattern {
@@ -140,8 +144,8 @@ impl AreaMc {
                 segs.clear();
                 gs.clear();
                 for k in 0..m {
-                    let x = p.sample_point(a, xs[k].0, xs[k].1);
-                    let y = p.sample_point(b, ys[k].0, ys[k].1);
+                    let x = on_a.point(xs[k].0, xs[k].1);
+                    let y = on_b.point(ys[k].0, ys[k].1);
                     if let Some(g) = kernel(x, n_a, y, n_b) {
                         segs.push(ctx.vis.segment_ray(x, n_a, y, n_b));
                         gs.push(g);

@@ -17,8 +17,8 @@
 use glam::Vec3;
 
 use super::{Context, Entry, Estimator, Row};
-use crate::visibility::Hit;
 use crate::sampling::{jittered, shuffle, Pcg32};
+use crate::visibility::Hit;
 
 /// Hemisphere-shooting estimator.
 #[derive(Clone, Debug)]
@@ -66,9 +66,11 @@ pub fn cosine_direction(u: f64, v: f64) -> Vec3 {
             std::f64::consts::FRAC_PI_2 - std::f64::consts::FRAC_PI_4 * (a / b),
         )
     };
-    let (x, y) = (r * phi.cos(), r * phi.sin());
+    // f32 trigonometry: the direction is f32 anyway, and sincosf is about twice as fast.
+    let (sin, cos) = (phi as f32).sin_cos();
+    let (x, y) = (r as f32 * cos, r as f32 * sin);
     let z = (1.0 - x * x - y * y).max(0.0).sqrt();
-    Vec3::new(x as f32, y as f32, z as f32)
+    Vec3::new(x, y, z)
 }
 
 impl Estimator for Hemisphere {
@@ -90,6 +92,8 @@ impl Estimator for Hemisphere {
 struct Scratch {
     pos: Vec<(f64, f64)>,
     dirs: Vec<(f64, f64)>,
+    /// Rays `(origin, direction)` of one replicate.
+    rays: Vec<(Vec3, Vec3)>,
     /// `(patch hit, replicate)` of the rays that hit the front of another patch.
     keyed: Vec<(u32, u32)>,
     counts: Vec<u32>,
@@ -127,17 +131,22 @@ impl Hemisphere {
         let m = self.strata * self.strata;
         let n_i = p.normal[i];
         let (t, b) = basis(n_i);
+        let on_i = p.sampler(i);
         s.keyed.clear();
         for r in 0..reps {
             let mut rng = Pcg32::keyed(ctx.seed, i as u64, u64::MAX, r as u64);
             jittered(&mut rng, self.strata, &mut s.pos);
             jittered(&mut rng, self.strata, &mut s.dirs);
             shuffle(&mut rng, &mut s.dirs);
-            for k in 0..m {
-                let x = p.sample_point(i, s.pos[k].0, s.pos[k].1);
+            // Sample the replicate's rays first, then trace them in a tight loop.
+            s.rays.clear();
+            s.rays.extend((0..m).map(|k| {
+                let x = on_i.point(s.pos[k].0, s.pos[k].1);
                 let l = cosine_direction(s.dirs[k].0, s.dirs[k].1);
                 let w = (t * l.x + b * l.y + n_i * l.z).normalize();
-                let org = ctx.vis.first_hit_origin(x, n_i, w);
+                (ctx.vis.first_hit_origin(x, n_i, w), w)
+            }));
+            for &(org, w) in &s.rays {
                 if let Some(h) = first_hit(org, w) {
                     if h.patch as usize != i && p.normal[h.patch as usize].dot(w) < 0.0 {
                         s.keyed.push((h.patch, r as u32));

@@ -160,7 +160,14 @@ pub fn compute_timed(
         csr = CsrBuilder::with_capacity(n, 0);
         for lo in (0..n).step_by(BLOCK_ROWS) {
             let t = Instant::now();
-            let (rows, r) = rows_par(ctx, est, lo..(lo + BLOCK_ROWS).min(n), &done, n as u64, progress);
+            let (rows, r) = rows_par(
+                ctx,
+                est,
+                lo..(lo + BLOCK_ROWS).min(n),
+                &done,
+                n as u64,
+                progress,
+            );
             rays += r;
             split.rows += t.elapsed().as_secs_f64();
             let t = Instant::now();

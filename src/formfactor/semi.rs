@@ -53,6 +53,7 @@ use super::{Context, Entry, Estimator, Row};
 use crate::analytic::{gauss_legendre, point_to_polygon};
 use crate::mesh::PatchSet;
 use crate::sampling::{jittered, Pcg32};
+use crate::visibility::SegmentRay;
 
 /// How the nodes `x` on the emitter are placed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -175,7 +176,9 @@ impl Estimator for SemiAnalytic {
 
     fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
         let vis = ctx.vis;
-        self.row_with(ctx, i, row, &mut |segs, out| vis.segments_visible(segs, out));
+        self.row_with(ctx, i, row, &mut |segs, out| {
+            vis.segments_visible(segs, out)
+        });
     }
 }
 
@@ -188,7 +191,7 @@ impl SemiAnalytic {
         ctx: &Context,
         i: usize,
         row: &mut Row,
-        visible: &mut dyn FnMut(&[(Vec3, Vec3, f32)], &mut [bool]),
+        visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
     ) {
         let p = ctx.patches;
         let reps = self.replicates.max(2);
@@ -225,6 +228,7 @@ impl SemiAnalytic {
             let (n_j, c_j) = (p.normal[j], p.centroid[j].as_dvec3());
             let n_y = n_j.as_dvec3();
             let free = self.unoccluded(p, i, j, &others);
+            let on_j = p.sampler(j);
             // Exact unoccluded point factors at fixed nodes are the same in every replicate.
             let fixed: Vec<f64> = if self.nodes == Nodes::Gauss {
                 nodes
@@ -265,7 +269,7 @@ impl SemiAnalytic {
                         segs.clear();
                         gs.clear();
                         for &(u, v) in &ys {
-                            let y = p.sample_point(j, u, v);
+                            let y = on_j.point(u, v);
                             if let Some(g) = kernel(xf, n_i, y, n_j) {
                                 segs.push(ctx.vis.segment_ray(xf, n_i, y, n_j));
                                 gs.push(g);

@@ -97,24 +97,35 @@ impl PatchSet {
     /// triangles by the square-root warp (Shirley and Chiu 1997; pbrt-v4
     /// `SampleUniformTriangle`), parallelograms bilinearly, other quads by picking one of
     /// their two triangles with probability proportional to its area (on `u`).
+    /// For many points on one patch, [`PatchSet::sampler`] does the per-patch work once.
     #[inline]
     pub fn sample_point(&self, i: usize, u: f64, v: f64) -> Vec3 {
+        self.sampler(i).point(u, v)
+    }
+
+    /// The warp of [`PatchSet::sample_point`] for patch `i`, with its per-patch set-up
+    /// (corner loads, parallelogram test, triangle areas) done once.
+    #[inline]
+    pub fn sampler(&self, i: usize) -> PatchSampler {
         let (p, n) = self.corner_points(i);
         if n == 3 {
-            return sample_triangle(p[0], p[1], p[2], u, v);
+            return PatchSampler {
+                p,
+                kind: Warp::Triangle,
+            };
         }
         let skew = p[0] + p[2] - p[1] - p[3];
         if skew.length_squared() <= 1e-12 * (p[2] - p[0]).length_squared() {
-            let (u, v) = (u as f32, v as f32);
-            return p[0] + (p[1] - p[0]) * u + (p[3] - p[0]) * v;
+            return PatchSampler {
+                p,
+                kind: Warp::Parallelogram,
+            };
         }
         let a1 = (p[1] - p[0]).cross(p[2] - p[0]).length() as f64;
         let a2 = (p[2] - p[0]).cross(p[3] - p[0]).length() as f64;
-        let w = a1 / (a1 + a2);
-        if u < w {
-            sample_triangle(p[0], p[1], p[2], u / w, v)
-        } else {
-            sample_triangle(p[0], p[2], p[3], ((u - w) / (1.0 - w)).min(1.0), v)
+        PatchSampler {
+            p,
+            kind: Warp::TwoTriangles(a1 / (a1 + a2)),
         }
     }
 
@@ -266,6 +277,44 @@ impl PatchSet {
 /// Number of segments of length at most `h` along `edge`.
 fn cells(edge: DVec3, h: f64) -> usize {
     ((edge.length() / h).ceil() as usize).clamp(1, 1 << 16)
+}
+
+/// How a [`PatchSampler`] maps the unit square onto its patch.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Warp {
+    Triangle,
+    Parallelogram,
+    /// A general quad: triangle (0, 1, 2) with this probability, else (0, 2, 3).
+    TwoTriangles(f64),
+}
+
+/// Uniform points on one patch (see [`PatchSet::sample_point`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PatchSampler {
+    p: [Vec3; 4],
+    kind: Warp,
+}
+
+impl PatchSampler {
+    /// The point of `(u, v)` in the unit square.
+    #[inline]
+    pub fn point(&self, u: f64, v: f64) -> Vec3 {
+        let p = &self.p;
+        match self.kind {
+            Warp::Triangle => sample_triangle(p[0], p[1], p[2], u, v),
+            Warp::Parallelogram => {
+                let (u, v) = (u as f32, v as f32);
+                p[0] + (p[1] - p[0]) * u + (p[3] - p[0]) * v
+            }
+            Warp::TwoTriangles(w) => {
+                if u < w {
+                    sample_triangle(p[0], p[1], p[2], u / w, v)
+                } else {
+                    sample_triangle(p[0], p[2], p[3], ((u - w) / (1.0 - w)).min(1.0), v)
+                }
+            }
+        }
+    }
 }
 
 /// Uniform point on triangle (a, b, c) from (u, v) in the unit square.

@@ -22,6 +22,10 @@ pub use embree::{flush_denormals, EmbreeScene};
 /// Relative offset of ray ends from their surfaces, as a fraction of the scene diagonal.
 pub const OFFSET_REL: f32 = 1e-5;
 
+/// A segment ray `(origin, direction, tfar)` with tnear = 0, as made by
+/// [`Visibility::segment_ray`].
+pub type SegmentRay = (Vec3, Vec3, f32);
+
 /// What a ray hit first.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Hit {
@@ -96,7 +100,7 @@ impl Visibility {
     /// `out[k]` is true when segment k is free. One `rtcOccluded1` per ray: on the
     /// scenes measured in `docs/PERFORMANCE.md` it beat `rtcOccluded16` packets.
     #[inline]
-    pub fn segments_visible(&self, segs: &[(Vec3, Vec3, f32)], out: &mut [bool]) {
+    pub fn segments_visible(&self, segs: &[SegmentRay], out: &mut [bool]) {
         for (o, s) in out.iter_mut().zip(segs) {
             *o = !self.scene.occluded1(s.0, s.1, 0.0, s.2);
         }
