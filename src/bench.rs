@@ -323,6 +323,8 @@ pub struct StageReport {
     pub stages: Vec<StageLine>,
     /// Solver iterations.
     pub iterations: usize,
+    /// Why the solve failed, if it did.
+    pub solve_error: Option<String>,
 }
 
 impl StageReport {
@@ -380,9 +382,19 @@ pub fn stages(
     });
     drop(vis);
     let (rays, nnz) = (ff.rays, ff.f.nnz());
-    let (b, report) = st.run("solve", || {
+    let solved = st.run("solve", || {
         pipeline::solve_radiosity(&patches, &ff, Method::GaussSeidel, &Options::default())
-    })?;
+    });
+    // A solve that fails (e.g. area-to-area rows summing far above 1 on the cube's shared
+    // edges) is reported, and the output stage then writes the emission only.
+    let (b, iterations, solve_error) = match solved {
+        Ok((b, report)) => (b, report.iterations, None),
+        Err(e) => (
+            (0..patches.len()).map(|i| patches.emit(i)).collect(),
+            0,
+            Some(e.to_string()),
+        ),
+    };
     let name = ff.estimator.clone();
     drop(ff);
     std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
@@ -397,7 +409,8 @@ pub fn stages(
         rays,
         nnz,
         stages: st.0,
-        iterations: report.iterations,
+        iterations,
+        solve_error,
     })
 }
 
@@ -431,6 +444,13 @@ pub fn format_stages(reports: &[StageReport]) -> String {
             );
         }
         let _ = writeln!(o, " {:>9}", FormFactors::BYTES_PER_ENTRY);
+        if let Some(e) = &r.solve_error {
+            let _ = writeln!(
+                o,
+                "  (solve failed: {})",
+                e.chars().take(160).collect::<String>()
+            );
+        }
     }
     o
 }
