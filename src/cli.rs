@@ -41,6 +41,8 @@ enum Command {
     /// Compare the solvers: residual against work and time on the closed cube (rho 0.5 to
     /// 0.999) and the Cornell box; CSV and charts.
     StudySolvers(StudySolversArgs),
+    /// Measure: form-factor stage vs raw Embree rays/s, time and memory per stage, scaling.
+    Bench(BenchArgs),
 }
 
 #[derive(Args, Debug)]
@@ -51,6 +53,34 @@ struct StudySolversArgs {
     /// A small study (coarse meshes, two reflectances), for tests.
     #[arg(long)]
     quick: bool,
+}
+
+#[derive(Args, Debug)]
+struct BenchArgs {
+    /// Scene of the stage-vs-raw table.
+    #[arg(default_value = "cornell")]
+    scene: String,
+    /// Patches of the stage-vs-raw table.
+    #[arg(long, default_value_t = 500)]
+    patches: usize,
+    /// Repeats of each timing (medians are printed).
+    #[arg(long, default_value_t = 3)]
+    repeats: usize,
+    /// Worker threads (default: all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Leave flush-to-zero / denormals-are-zero off on the workers.
+    #[arg(long)]
+    no_ftz: bool,
+    /// Scaling run instead: Cornell box and cube at these patch counts (comma-separated).
+    #[arg(long, value_delimiter = ',', num_args = 0.., default_missing_value = "1024,4096,16384,65536,262144")]
+    scaling: Option<Vec<usize>>,
+    /// Largest patch count that also runs the all-pairs estimators (area, semi).
+    #[arg(long, default_value_t = 1024)]
+    area_max: usize,
+    /// Folder for scaling.csv and scratch EXR files.
+    #[arg(short, long, default_value = "bench-out")]
+    output: PathBuf,
 }
 
 #[derive(Args, Debug)]
@@ -479,6 +509,21 @@ pub fn run() -> Result<()> {
                 report.files.len(),
                 args.output.display()
             );
+            Ok(())
+        }
+        Command::Bench(a) => {
+            let cfg = radiosity::bench::BenchConfig {
+                scene: a.scene.clone(),
+                patches: a.patches,
+                repeats: a.repeats,
+                threads: a.threads,
+                ftz: !a.no_ftz,
+                seed: 1,
+                scaling: a.scaling.clone().unwrap_or_default(),
+                area_max: a.area_max,
+                out_dir: a.output.clone(),
+            };
+            radiosity::bench::run(&cfg, &mut |s| println!("{s}"))?;
             Ok(())
         }
         Command::Scenes => {

@@ -19,6 +19,7 @@
 #![warn(missing_docs)]
 
 pub mod analytic;
+pub mod bench;
 pub mod error;
 pub mod formfactor;
 pub mod matrix;

@@ -78,6 +78,73 @@ pub struct FormFactors {
 /// Form factors at least this large count as significant for the reciprocity figure.
 pub const SIGNIFICANT: f64 = 1e-3;
 
+/// Builds the CSR arrays one row at a time, so that rows can be freed as they are added
+/// (no dense `N x N` anything, and no second copy of the whole matrix).
+#[derive(Debug, Default)]
+pub struct CsrBuilder {
+    indptr: Vec<usize>,
+    indices: Vec<usize>,
+    data: Vec<f64>,
+    se: Vec<f64>,
+}
+
+impl CsrBuilder {
+    /// A builder with room for `rows` rows and `nnz` entries (0 when unknown).
+    pub fn with_capacity(rows: usize, nnz: usize) -> CsrBuilder {
+        let mut indptr = Vec::with_capacity(rows + 1);
+        indptr.push(0);
+        CsrBuilder {
+            indptr,
+            indices: Vec::with_capacity(nnz),
+            data: Vec::with_capacity(nnz),
+            se: Vec::with_capacity(nnz),
+        }
+    }
+
+    /// Appends the next row (entries in any order; duplicates are merged).
+    pub fn push_row(&mut self, row: &mut Vec<Entry>) {
+        row.sort_unstable_by_key(|e| e.j);
+        row.dedup_by(|b, a| {
+            // Merge duplicates (cannot happen with the built-in estimators).
+            if a.j == b.j {
+                a.f += b.f;
+                a.se = (a.se * a.se + b.se * b.se).sqrt();
+                true
+            } else {
+                false
+            }
+        });
+        for e in row.iter() {
+            self.indices.push(e.j as usize);
+            self.data.push(e.f);
+            self.se.push(e.se);
+        }
+        self.indptr.push(self.indices.len());
+    }
+
+    /// The finished matrix (square, one column per row pushed).
+    pub fn finish(
+        self,
+        area: Vec<f64>,
+        rays: u64,
+        seconds: f64,
+        estimator: String,
+        seed: u64,
+    ) -> FormFactors {
+        let n = self.indptr.len() - 1;
+        let f = CsMat::new((n, n), self.indptr, self.indices, self.data);
+        FormFactors {
+            f,
+            se: self.se,
+            area,
+            rays,
+            seconds,
+            estimator,
+            seed,
+        }
+    }
+}
+
 /// Physical diagnostics of a form-factor matrix.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Diagnostics {
@@ -113,44 +180,16 @@ impl FormFactors {
         estimator: String,
         seed: u64,
     ) -> FormFactors {
-        let n = rows.len();
-        let nnz: usize = rows.iter().map(Vec::len).sum();
-        let mut indptr = Vec::with_capacity(n + 1);
-        let mut indices = Vec::with_capacity(nnz);
-        let mut data = Vec::with_capacity(nnz);
-        let mut se = Vec::with_capacity(nnz);
-        indptr.push(0usize);
+        let mut b = CsrBuilder::with_capacity(rows.len(), rows.iter().map(Vec::len).sum());
         for mut row in rows {
-            row.sort_unstable_by_key(|e| e.j);
-            row.dedup_by(|b, a| {
-                // Merge duplicates (cannot happen with the built-in estimators).
-                if a.j == b.j {
-                    a.f += b.f;
-                    a.se = (a.se * a.se + b.se * b.se).sqrt();
-                    true
-                } else {
-                    false
-                }
-            });
-            for e in row {
-                indices.push(e.j as usize);
-                data.push(e.f);
-                se.push(e.se);
-            }
-            indptr.push(indices.len());
+            b.push_row(&mut row);
         }
-        let f = CsMat::new((n, n), indptr, indices, data);
-        FormFactors {
-            f,
-            se,
-            area,
-            rays,
-            seconds,
-            estimator,
-            seed,
-        }
+        b.finish(area, rays, seconds, estimator, seed)
     }
 
+    /// Bytes held per stored factor: column index, value and standard error.
+    pub const BYTES_PER_ENTRY: usize =
+        std::mem::size_of::<usize>() + 2 * std::mem::size_of::<f64>();
     /// Number of patches.
     pub fn len(&self) -> usize {
         self.f.rows()

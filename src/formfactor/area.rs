@@ -31,6 +31,7 @@ use glam::Vec3;
 
 use super::{Context, Entry, Estimator, Row};
 use crate::sampling::Pcg32;
+use crate::visibility::SegmentRay;
 
 /// How points are placed on each patch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -115,21 +116,23 @@ impl Estimator for AreaMc {
 
     fn row(&self, ctx: &Context, a: usize, row: &mut Row) {
         let vis = ctx.vis;
-        self.row_with(ctx, a, row, &mut |x, n_x, y, n_y| {
-            vis.segment_visible(x, n_x, y, n_y)
+        self.row_with(ctx, a, row, &mut |segs, out| {
+            vis.segments_visible(segs, out)
         });
     }
 }
 
 impl AreaMc {
-    /// Row `a` (pairs `b > a`) with `visible(x, n_x, y, n_y)` answering visibility; the
-    /// rays asked for do not depend on the answers, so a recorder sees the exact ray set.
+    /// Row `a` (pairs `b > a`) with `visible(segments, out)` answering visibility for a
+    /// batch of segment rays ([`crate::visibility::Visibility::segment_ray`], one batch per
+    /// replicate of a pair); the rays asked for do not depend on the answers, so a recorder
+    /// sees the exact ray set.
     pub fn row_with(
         &self,
         ctx: &Context,
         a: usize,
         row: &mut Row,
-        visible: &mut dyn FnMut(Vec3, Vec3, Vec3, Vec3) -> bool,
+        visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
     ) {
         for b in a + 1..ctx.patches.len() {
             if let Some(e) = self.pair_with(ctx, a, b, &mut row.rays, visible) {
@@ -140,13 +143,15 @@ impl AreaMc {
 
     /// The entry `F_ab` of the unordered pair (a, b) (`F_ba` follows by reciprocity), or
     /// `None` when the pair is culled or no sample sees anything; `rays` counts the rays.
+    /// `visible(segments, out)` answers visibility for each replicate's batch of segment
+    /// rays ([`crate::visibility::Visibility::segment_ray`]).
     pub fn pair_with(
         &self,
         ctx: &Context,
         a: usize,
         b: usize,
         rays: &mut u64,
-        visible: &mut dyn FnMut(Vec3, Vec3, Vec3, Vec3) -> bool,
+        visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
     ) -> Option<Entry> {
         let p = ctx.patches;
         if behind(ctx, a, b) || behind(ctx, b, a) {
@@ -156,10 +161,16 @@ impl AreaMc {
         let reps = self.replicates.max(2);
         let mut xs = Vec::with_capacity(m);
         let mut ys = Vec::with_capacity(m);
+        let mut segs = Vec::with_capacity(m);
+        let mut gs = Vec::with_capacity(m);
+        let mut seen = vec![false; m];
         let mut means = vec![0.0f64; reps];
         let (n_a, n_b) = (p.normal[a], p.normal[b]);
+        let (on_a, on_b) = (p.sampler(a), p.sampler(b));
         for (r, mean) in means.iter_mut().enumerate() {
             let mut rng = Pcg32::keyed(ctx.seed, a as u64, b as u64, r as u64);
+            xs.clear();
+            ys.clear();
             match self.pattern {
                 Pattern::Stratified => {
                     // One jittered pair in every cell of a t x t x t x t grid of the 4D
@@ -167,16 +178,13 @@ impl AreaMc {
                     // is stratified too, not only its margins.
                     let t = self.grid();
                     let inv = 1.0 / t as f64;
-                    xs.clear();
-                    ys.clear();
+                    let mut jit = |c: usize| (c as f64 + rng.next_f64()) * inv;
                     for a1 in 0..t {
                         for a2 in 0..t {
                             for b1 in 0..t {
                                 for b2 in 0..t {
-                                    let j =
-                                        |c: usize, r: &mut Pcg32| (c as f64 + r.next_f64()) * inv;
-                                    xs.push((j(a1, &mut rng), j(a2, &mut rng)));
-                                    ys.push((j(b1, &mut rng), j(b2, &mut rng)));
+                                    xs.push((jit(a1), jit(a2)));
+                                    ys.push((jit(b1), jit(b2)));
                                 }
                             }
                         }
@@ -185,8 +193,6 @@ impl AreaMc {
                 Pattern::Sobol => {
                     // Owen scrambling with a fresh seed per replicate.
                     let scramble = rng.next_u32();
-                    xs.clear();
-                    ys.clear();
                     for k in 0..m as u32 {
                         let q = sobol_burley::sample_4d(k, 0, scramble);
                         xs.push((q[0] as f64, q[1] as f64));
@@ -194,25 +200,25 @@ impl AreaMc {
                     }
                 }
                 Pattern::Uniform => {
-                    xs.clear();
-                    ys.clear();
                     for _ in 0..m {
                         xs.push((rng.next_f64(), rng.next_f64()));
                         ys.push((rng.next_f64(), rng.next_f64()));
                     }
                 }
             }
-            let mut sum = 0.0f64;
+            segs.clear();
+            gs.clear();
             for k in 0..m {
-                let x = p.sample_point(a, xs[k].0, xs[k].1);
-                let y = p.sample_point(b, ys[k].0, ys[k].1);
+                let x = on_a.point(xs[k].0, xs[k].1);
+                let y = on_b.point(ys[k].0, ys[k].1);
                 if let Some(g) = kernel(x, n_a, y, n_b) {
-                    *rays += 1;
-                    if visible(x, n_a, y, n_b) {
-                        sum += g;
-                    }
+                    segs.push(ctx.vis.segment_ray(x, n_a, y, n_b));
+                    gs.push(g);
                 }
             }
+            *rays += segs.len() as u64;
+            visible(&segs, &mut seen[..segs.len()]);
+            let sum: f64 = gs.iter().zip(&seen).filter(|q| *q.1).map(|q| *q.0).sum();
             *mean = sum / m as f64;
         }
         let avg = means.iter().sum::<f64>() / reps as f64;

@@ -18,6 +18,7 @@ use glam::Vec3;
 
 use super::{Context, Entry, Estimator, Row};
 use crate::sampling::{jittered, shuffle, Pcg32};
+use crate::visibility::Hit;
 
 /// Hemisphere-shooting estimator.
 #[derive(Clone, Debug)]
@@ -65,9 +66,11 @@ pub fn cosine_direction(u: f64, v: f64) -> Vec3 {
             std::f64::consts::FRAC_PI_2 - std::f64::consts::FRAC_PI_4 * (a / b),
         )
     };
-    let (x, y) = (r * phi.cos(), r * phi.sin());
+    // f32 trigonometry: the direction is f32 anyway, and sincosf is about twice as fast.
+    let (sin, cos) = (phi as f32).sin_cos();
+    let (x, y) = (r as f32 * cos, r as f32 * sin);
     let z = (1.0 - x * x - y * y).max(0.0).sqrt();
-    Vec3::new(x as f32, y as f32, z as f32)
+    Vec3::new(x, y, z)
 }
 
 impl Estimator for Hemisphere {
@@ -79,50 +82,100 @@ impl Estimator for Hemisphere {
     }
 
     fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
+        let vis = ctx.vis;
+        self.row_with(ctx, i, row, &mut |org, dir| vis.first_hit_from(org, dir));
+    }
+}
+
+/// Per-thread buffers of [`Hemisphere::row_with`], kept between rows.
+#[derive(Default)]
+struct Scratch {
+    pos: Vec<(f64, f64)>,
+    dirs: Vec<(f64, f64)>,
+    /// Rays `(origin, direction)` of one replicate.
+    rays: Vec<(Vec3, Vec3)>,
+    /// `(patch hit, replicate)` of the rays that hit the front of another patch.
+    keyed: Vec<(u32, u32)>,
+    counts: Vec<u32>,
+}
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::default();
+}
+
+impl Hemisphere {
+    /// Row `i` with `first_hit(origin, direction)` answering the closest-hit query for the
+    /// ray from `origin` (already offset off patch i, see
+    /// [`crate::visibility::Visibility::first_hit_origin`]) in unit `direction`; the rays
+    /// asked for do not depend on the answers, so a recorder sees the exact ray set.
+    pub fn row_with(
+        &self,
+        ctx: &Context,
+        i: usize,
+        row: &mut Row,
+        first_hit: &mut dyn FnMut(Vec3, Vec3) -> Option<Hit>,
+    ) {
+        SCRATCH.with(|s| self.row_in(ctx, i, row, first_hit, &mut s.borrow_mut()));
+    }
+
+    fn row_in(
+        &self,
+        ctx: &Context,
+        i: usize,
+        row: &mut Row,
+        first_hit: &mut dyn FnMut(Vec3, Vec3) -> Option<Hit>,
+        s: &mut Scratch,
+    ) {
         let p = ctx.patches;
         let reps = self.replicates.max(2);
         let m = self.strata * self.strata;
         let n_i = p.normal[i];
         let (t, b) = basis(n_i);
-        let mut pos = Vec::with_capacity(m);
-        let mut dirs = Vec::with_capacity(m);
-        // hits[r] holds the front-hit patch ids of replicate r.
-        let mut hits: Vec<u32> = Vec::with_capacity(m * reps);
-        let mut rep_of: Vec<u32> = Vec::with_capacity(m * reps);
+        let on_i = p.sampler(i);
+        s.keyed.clear();
         for r in 0..reps {
             let mut rng = Pcg32::keyed(ctx.seed, i as u64, u64::MAX, r as u64);
-            jittered(&mut rng, self.strata, &mut pos);
-            jittered(&mut rng, self.strata, &mut dirs);
-            shuffle(&mut rng, &mut dirs);
-            for k in 0..m {
-                let x = p.sample_point(i, pos[k].0, pos[k].1);
-                let l = cosine_direction(dirs[k].0, dirs[k].1);
+            jittered(&mut rng, self.strata, &mut s.pos);
+            jittered(&mut rng, self.strata, &mut s.dirs);
+            shuffle(&mut rng, &mut s.dirs);
+            // Sample the replicate's rays first, then trace them in a tight loop.
+            s.rays.clear();
+            s.rays.extend((0..m).map(|k| {
+                let x = on_i.point(s.pos[k].0, s.pos[k].1);
+                let l = cosine_direction(s.dirs[k].0, s.dirs[k].1);
                 let w = (t * l.x + b * l.y + n_i * l.z).normalize();
-                row.rays += 1;
-                if let Some(h) = ctx.vis.first_hit(x, n_i, w) {
-                    if p.normal[h.patch as usize].dot(w) < 0.0 && h.patch as usize != i {
-                        hits.push(h.patch);
-                        rep_of.push(r as u32);
+                (ctx.vis.first_hit_origin(x, n_i, w), w)
+            }));
+            for &(org, w) in &s.rays {
+                if let Some(h) = first_hit(org, w) {
+                    if h.patch as usize != i && p.normal[h.patch as usize].dot(w) < 0.0 {
+                        s.keyed.push((h.patch, r as u32));
                     }
                 }
             }
         }
+        row.rays += (m * reps) as u64;
         // Count hits per (patch, replicate).
-        let mut keyed: Vec<(u32, u32)> = hits.into_iter().zip(rep_of).collect();
-        keyed.sort_unstable();
+        s.keyed.sort_unstable();
         let inv_m = 1.0 / m as f64;
-        let mut counts = vec![0u32; reps];
+        s.counts.clear();
+        s.counts.resize(reps, 0);
+        let keyed = &s.keyed;
         let mut k = 0;
         while k < keyed.len() {
             let j = keyed[k].0;
-            counts.iter_mut().for_each(|c| *c = 0);
+            s.counts.iter_mut().for_each(|c| *c = 0);
             while k < keyed.len() && keyed[k].0 == j {
-                counts[keyed[k].1 as usize] += 1;
+                s.counts[keyed[k].1 as usize] += 1;
                 k += 1;
             }
-            let means: Vec<f64> = counts.iter().map(|&c| c as f64 * inv_m).collect();
-            let avg = means.iter().sum::<f64>() / reps as f64;
-            let var = means.iter().map(|v| (v - avg).powi(2)).sum::<f64>() / (reps - 1) as f64;
+            let avg = s.counts.iter().map(|&c| c as f64 * inv_m).sum::<f64>() / reps as f64;
+            let var = s
+                .counts
+                .iter()
+                .map(|&c| (c as f64 * inv_m - avg).powi(2))
+                .sum::<f64>()
+                / (reps - 1) as f64;
             row.entries.push(Entry {
                 j,
                 f: avg,

@@ -22,7 +22,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use crate::matrix::FormFactors;
+use crate::matrix::{CsrBuilder, FormFactors};
 use crate::mesh::PatchSet;
 use crate::visibility::Visibility;
 
@@ -75,31 +75,72 @@ pub trait Estimator: Sync {
     fn row(&self, ctx: &Context, i: usize, row: &mut Row);
 }
 
+/// Rows computed in parallel per block before they are appended to the CSR arrays (and
+/// freed): bounds the memory held in per-row vectors for estimators that are not
+/// [`Estimator::upper_only`].
+pub const BLOCK_ROWS: usize = 8192;
+
+/// Wall-clock split of [`compute_timed`].
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Split {
+    /// Seconds spent computing rows (rays, sampling, per-row tallies).
+    pub rows: f64,
+    /// Seconds spent mirroring and assembling rows into CSR.
+    pub assembly: f64,
+}
+
 /// Computes the whole matrix with `est`, calling `progress(rows_done)` now and then.
 pub fn compute(ctx: &Context, est: &dyn Estimator, progress: &(dyn Fn(u64) + Sync)) -> FormFactors {
-    let start = Instant::now();
-    let n = ctx.patches.len();
-    let done = AtomicU64::new(0);
-    let rows: Vec<Row> = (0..n)
+    compute_timed(ctx, est, progress).0
+}
+
+/// Computes rows `range` in parallel, each row's entries in an exactly sized vector.
+fn rows_par(
+    ctx: &Context,
+    est: &dyn Estimator,
+    range: std::ops::Range<usize>,
+    done: &AtomicU64,
+    n: u64,
+    progress: &(dyn Fn(u64) + Sync),
+) -> (Vec<Vec<Entry>>, u64) {
+    let rows: Vec<(Vec<Entry>, u64)> = range
         .into_par_iter()
         .with_min_len(1)
-        .map(|i| {
-            let mut row = Row::default();
-            est.row(ctx, i, &mut row);
+        .map_init(Row::default, |row, i| {
+            row.entries.clear();
+            row.rays = 0;
+            est.row(ctx, i, row);
             let d = done.fetch_add(1, Ordering::Relaxed) + 1;
-            if d % 64 == 0 || d == n as u64 {
+            if d % 64 == 0 || d == n {
                 progress(d);
             }
-            row
+            (row.entries.as_slice().to_vec(), row.rays)
         })
         .collect();
-    let seconds = start.elapsed().as_secs_f64();
-    let rays = rows.iter().map(|r| r.rays).sum();
+    let rays = rows.iter().map(|r| r.1).sum();
+    (rows.into_iter().map(|r| r.0).collect(), rays)
+}
+
+/// [`compute`], also reporting how long rows and assembly took.
+pub fn compute_timed(
+    ctx: &Context,
+    est: &dyn Estimator,
+    progress: &(dyn Fn(u64) + Sync),
+) -> (FormFactors, Split) {
+    let n = ctx.patches.len();
+    let done = AtomicU64::new(0);
     let area = &ctx.patches.area;
-    let mut triplets: Vec<Vec<Entry>> = rows.into_iter().map(|r| r.entries).collect();
+    let mut split = Split::default();
+    let mut rays = 0u64;
+    let mut csr;
     if est.upper_only() {
+        let t = Instant::now();
+        let (mut rows, r) = rows_par(ctx, est, 0..n, &done, n as u64, progress);
+        rays = r;
+        split.rows = t.elapsed().as_secs_f64();
+        let t = Instant::now();
         let mut mirrored: Vec<Vec<Entry>> = vec![Vec::new(); n];
-        for (i, row) in triplets.iter().enumerate() {
+        for (i, row) in rows.iter().enumerate() {
             for e in row {
                 let j = e.j as usize;
                 let s = area[i] / area[j];
@@ -110,9 +151,40 @@ pub fn compute(ctx: &Context, est: &dyn Estimator, progress: &(dyn Fn(u64) + Syn
                 });
             }
         }
-        for (row, extra) in triplets.iter_mut().zip(mirrored) {
+        csr = CsrBuilder::with_capacity(n, 0);
+        for (row, extra) in rows.iter_mut().zip(mirrored) {
             row.extend(extra);
+            csr.push_row(row);
+            *row = Vec::new();
+        }
+        split.assembly = t.elapsed().as_secs_f64();
+    } else {
+        csr = CsrBuilder::with_capacity(n, 0);
+        for lo in (0..n).step_by(BLOCK_ROWS) {
+            let t = Instant::now();
+            let (rows, r) = rows_par(
+                ctx,
+                est,
+                lo..(lo + BLOCK_ROWS).min(n),
+                &done,
+                n as u64,
+                progress,
+            );
+            rays += r;
+            split.rows += t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            for mut row in rows {
+                csr.push_row(&mut row);
+            }
+            split.assembly += t.elapsed().as_secs_f64();
         }
     }
-    FormFactors::from_rows(triplets, area.clone(), rays, seconds, est.name(), ctx.seed)
+    let ff = csr.finish(
+        area.clone(),
+        rays,
+        split.rows + split.assembly,
+        est.name(),
+        ctx.seed,
+    );
+    (ff, split)
 }

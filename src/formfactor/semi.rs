@@ -55,6 +55,7 @@ use super::{Context, Entry, Estimator, Row};
 use crate::analytic::{gauss_legendre, point_to_polygon};
 use crate::mesh::PatchSet;
 use crate::sampling::{jittered, Pcg32};
+use crate::visibility::SegmentRay;
 
 /// How the nodes `x` on the emitter are placed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -224,6 +225,24 @@ impl Estimator for SemiAnalytic {
     }
 
     fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
+        let vis = ctx.vis;
+        self.row_with(ctx, i, row, &mut |segs, out| {
+            vis.segments_visible(segs, out)
+        });
+    }
+}
+
+impl SemiAnalytic {
+    /// Row `i` with `visible(segments, out)` answering visibility for a batch of segment
+    /// rays ([`crate::visibility::Visibility::segment_ray`], one batch per node); the rays
+    /// asked for do not depend on the answers, so a recorder sees the exact ray set.
+    pub fn row_with(
+        &self,
+        ctx: &Context,
+        i: usize,
+        row: &mut Row,
+        visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
+    ) {
         let p = ctx.patches;
         let reps = self.replicates.max(2);
         let m = self.points.max(1);
@@ -253,6 +272,7 @@ impl Estimator for SemiAnalytic {
         let area_i = p.area[i];
         let mut strata = Vec::new();
         let mut ys = Vec::new();
+        let (mut segs, mut gs, mut seen) = (Vec::new(), Vec::new(), Vec::new());
         let mut means = vec![0.0f64; reps];
         for j in 0..p.len() {
             if j == i || plane_range(p, i, j).1 <= tol || plane_range(p, j, i).1 <= tol {
@@ -285,6 +305,7 @@ impl Estimator for SemiAnalytic {
             } else {
                 (&nodes, &nodes_lo)
             };
+            let on_j = p.sampler(j);
             // Exact unoccluded point factors at fixed nodes are the same in every replicate.
             let fixed: Vec<f64> = if gauss {
                 nodes_j
@@ -322,15 +343,24 @@ impl Estimator for SemiAnalytic {
                     } else {
                         jittered(&mut rng, self.vis_rays.max(1), &mut ys);
                         let xf = x.as_vec3();
-                        let (mut g_all, mut g_vis) = (0.0, 0.0);
+                        segs.clear();
+                        gs.clear();
                         for &(u, v) in &ys {
-                            let y = p.sample_point(j, u, v);
+                            let y = on_j.point(u, v);
                             if let Some(g) = kernel(xf, n_i, y, n_j) {
-                                row.rays += 1;
-                                g_all += g;
-                                if ctx.vis.segment_visible(xf, n_i, y, n_j) {
-                                    g_vis += g;
-                                }
+                                segs.push(ctx.vis.segment_ray(xf, n_i, y, n_j));
+                                gs.push(g);
+                            }
+                        }
+                        row.rays += segs.len() as u64;
+                        seen.clear();
+                        seen.resize(segs.len(), false);
+                        visible(&segs, &mut seen);
+                        let (mut g_all, mut g_vis) = (0.0, 0.0);
+                        for (&g, &f) in gs.iter().zip(&seen) {
+                            g_all += g;
+                            if f {
+                                g_vis += g;
                             }
                         }
                         // No sample in view: the visible sliver of P_j is below the

@@ -20,33 +20,6 @@ pub type PatchId = u32;
 /// Marks the missing 4th corner of a triangular patch.
 pub const NONE: u32 = u32::MAX;
 
-/// Precomputed data for mapping the unit square onto a patch (see
-/// [`PatchSet::sample_point`]).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Sampler {
-    /// Corners of a triangle.
-    Triangle(Vec3, Vec3, Vec3),
-    /// Origin and edge vectors of a parallelogram.
-    Parallelogram(Vec3, Vec3, Vec3),
-    /// Corners of another quad, and the area fraction of its first triangle (0, 1, 2).
-    Quad([Vec3; 4], f64),
-}
-
-impl Sampler {
-    fn new(p: [Vec3; 4], n: usize) -> Sampler {
-        if n == 3 {
-            return Sampler::Triangle(p[0], p[1], p[2]);
-        }
-        let skew = p[0] + p[2] - p[1] - p[3];
-        if skew.length_squared() <= 1e-12 * (p[2] - p[0]).length_squared() {
-            return Sampler::Parallelogram(p[0], p[1] - p[0], p[3] - p[0]);
-        }
-        let a1 = (p[1] - p[0]).cross(p[2] - p[0]).length() as f64;
-        let a2 = (p[2] - p[0]).cross(p[3] - p[0]).length() as f64;
-        Sampler::Quad(p, a1 / (a1 + a2))
-    }
-}
-
 /// How finely to subdivide.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Resolution {
@@ -82,8 +55,6 @@ pub struct PatchSet {
     pub triangles: Vec<[u32; 3]>,
     /// Patch of each triangle.
     pub tri_patch: Vec<u32>,
-    /// Sampling data of each patch.
-    pub sampler: Vec<Sampler>,
     /// Length of the diagonal of the scene's bounding box (sets ray offsets).
     pub diagonal: f64,
     /// The edge length the subdivision used.
@@ -126,18 +97,35 @@ impl PatchSet {
     /// triangles by the square-root warp (Shirley and Chiu 1997; pbrt-v4
     /// `SampleUniformTriangle`), parallelograms bilinearly, other quads by picking one of
     /// their two triangles with probability proportional to its area (on `u`).
+    /// For many points on one patch, [`PatchSet::sampler`] does the per-patch work once.
     #[inline]
     pub fn sample_point(&self, i: usize, u: f64, v: f64) -> Vec3 {
-        match self.sampler[i] {
-            Sampler::Triangle(a, b, c) => sample_triangle(a, b, c, u, v),
-            Sampler::Parallelogram(o, e1, e2) => o + e1 * u as f32 + e2 * v as f32,
-            Sampler::Quad([p0, p1, p2, p3], w) => {
-                if u < w {
-                    sample_triangle(p0, p1, p2, u / w, v)
-                } else {
-                    sample_triangle(p0, p2, p3, ((u - w) / (1.0 - w)).min(1.0), v)
-                }
-            }
+        self.sampler(i).point(u, v)
+    }
+
+    /// The warp of [`PatchSet::sample_point`] for patch `i`, with its per-patch set-up
+    /// (corner loads, parallelogram test, triangle areas) done once.
+    #[inline]
+    pub fn sampler(&self, i: usize) -> PatchSampler {
+        let (p, n) = self.corner_points(i);
+        if n == 3 {
+            return PatchSampler {
+                p,
+                kind: Warp::Triangle,
+            };
+        }
+        let skew = p[0] + p[2] - p[1] - p[3];
+        if skew.length_squared() <= 1e-12 * (p[2] - p[0]).length_squared() {
+            return PatchSampler {
+                p,
+                kind: Warp::Parallelogram,
+            };
+        }
+        let a1 = (p[1] - p[0]).cross(p[2] - p[0]).length() as f64;
+        let a2 = (p[2] - p[0]).cross(p[3] - p[0]).length() as f64;
+        PatchSampler {
+            p,
+            kind: Warp::TwoTriangles(a1 / (a1 + a2)),
         }
     }
 
@@ -254,11 +242,6 @@ impl PatchSet {
         }
         let id = self.area.len() as u32;
         self.corners.push(c);
-        let mut cp = [Vec3::ZERO; 4];
-        for (k, &v) in c[..n].iter().enumerate() {
-            cp[k] = self.vertices[v as usize];
-        }
-        self.sampler.push(Sampler::new(cp, n));
         self.area.push(newell.length() * 0.5);
         self.normal.push(newell.normalize_or_zero().as_vec3());
         self.centroid
@@ -294,6 +277,44 @@ impl PatchSet {
 /// Number of segments of length at most `h` along `edge`.
 fn cells(edge: DVec3, h: f64) -> usize {
     ((edge.length() / h).ceil() as usize).clamp(1, 1 << 16)
+}
+
+/// How a [`PatchSampler`] maps the unit square onto its patch.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Warp {
+    Triangle,
+    Parallelogram,
+    /// A general quad: triangle (0, 1, 2) with this probability, else (0, 2, 3).
+    TwoTriangles(f64),
+}
+
+/// Uniform points on one patch (see [`PatchSet::sample_point`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PatchSampler {
+    p: [Vec3; 4],
+    kind: Warp,
+}
+
+impl PatchSampler {
+    /// The point of `(u, v)` in the unit square.
+    #[inline]
+    pub fn point(&self, u: f64, v: f64) -> Vec3 {
+        let p = &self.p;
+        match self.kind {
+            Warp::Triangle => sample_triangle(p[0], p[1], p[2], u, v),
+            Warp::Parallelogram => {
+                let (u, v) = (u as f32, v as f32);
+                p[0] + (p[1] - p[0]) * u + (p[3] - p[0]) * v
+            }
+            Warp::TwoTriangles(w) => {
+                if u < w {
+                    sample_triangle(p[0], p[1], p[2], u / w, v)
+                } else {
+                    sample_triangle(p[0], p[2], p[3], ((u - w) / (1.0 - w)).min(1.0), v)
+                }
+            }
+        }
+    }
 }
 
 /// Uniform point on triangle (a, b, c) from (u, v) in the unit square.

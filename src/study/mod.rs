@@ -204,8 +204,8 @@ pub fn run_one(p: &Prepared, kind: Kind, budget: usize, seed: u64) -> Run {
                 replicates: REPLICATES,
             };
             let (a, b) = (i.min(j), i.max(j));
-            area.pair_with(&ctx, a, b, &mut row.rays, &mut |x, nx, y, ny| {
-                p.vis.segment_visible(x, nx, y, ny)
+            area.pair_with(&ctx, a, b, &mut row.rays, &mut |segs, out| {
+                p.vis.segments_visible(segs, out)
             })
             .map(|e| {
                 if a == i {

@@ -1,0 +1,777 @@
+//! Measurements behind `radiosity bench`: the form-factor stage against raw Embree
+//! queries over the same rays, time and peak memory per stage, and scaling in N and in
+//! threads. Nothing here asserts a time: it measures and reports, and every ratio it prints
+//! compares numbers taken in the same run (interleaved, median of `repeats`).
+//!
+//! - [`ratio`]: for one estimator, the exact rays its stage casts are recorded once (each
+//!   estimator's `row_with` takes the query as a closure, and the rays do not depend on the
+//!   answers); then the whole stage ([`formfactor::compute`]) and a raw loop of
+//!   `rtcOccluded1` (segment estimators) or `rtcIntersect1` (hemisphere: closest hit) over
+//!   the recorded rays run alternately on the same rayon pool.
+//! - [`stages`]: load, mesh, BVH, form-factor rows, assembly, solve, output, each with its
+//!   wall time and the peak resident memory during it (Linux: `VmHWM` reset through
+//!   `/proc/self/clear_refs` before the stage, read after; it includes what earlier stages
+//!   still hold).
+
+use std::path::Path;
+use std::time::Instant;
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+use crate::formfactor::{self, AreaMc, Context, Hemisphere, Nodes, Pattern, Row, SemiAnalytic};
+use crate::matrix::FormFactors;
+use crate::mesh::{PatchSet, Resolution};
+use crate::output;
+use crate::pipeline::{self, EstimatorChoice};
+use crate::scene::Scene;
+use crate::solve::{Method, Options};
+use crate::visibility::{self, Visibility};
+
+/// The rays a form-factor stage casts, recorded.
+pub enum Recorded {
+    /// Segment rays `(origin, direction, tfar)` for occlusion queries.
+    Segments(Vec<(Vec3, Vec3, f32)>),
+    /// Rays `(origin, unit direction)` for closest-hit queries.
+    Rays(Vec<(Vec3, Vec3)>),
+}
+
+impl Recorded {
+    /// Number of rays.
+    pub fn len(&self) -> usize {
+        match self {
+            Recorded::Segments(v) => v.len(),
+            Recorded::Rays(v) => v.len(),
+        }
+    }
+
+    /// True when no ray was recorded.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// Records the rays the stage of `choice` casts, in row order.
+pub fn record(ctx: &Context, choice: &EstimatorChoice) -> Recorded {
+    let n = ctx.patches.len();
+    match *choice {
+        EstimatorChoice::Hemisphere { strata, replicates } => {
+            let est = Hemisphere { strata, replicates };
+            Recorded::Rays(
+                (0..n)
+                    .into_par_iter()
+                    .flat_map_iter(|i| {
+                        let mut rays = Vec::new();
+                        est.row_with(ctx, i, &mut Row::default(), &mut |o, d| {
+                            rays.push((o, d));
+                            None
+                        });
+                        rays
+                    })
+                    .collect(),
+            )
+        }
+        _ => Recorded::Segments(
+            (0..n)
+                .into_par_iter()
+                .flat_map_iter(|i| {
+                    let mut rays = Vec::new();
+                    let mut rec = |segs: &[(Vec3, Vec3, f32)], out: &mut [bool]| {
+                        rays.extend_from_slice(segs);
+                        out.iter_mut().for_each(|o| *o = true);
+                    };
+                    let mut row = Row::default();
+                    match *choice {
+                        EstimatorChoice::AreaStratified { strata, replicates }
+                        | EstimatorChoice::AreaUniform { strata, replicates }
+                        | EstimatorChoice::AreaSobol { strata, replicates } => {
+                            let pattern = match choice {
+                                EstimatorChoice::AreaUniform { .. } => Pattern::Uniform,
+                                EstimatorChoice::AreaSobol { .. } => Pattern::Sobol,
+                                _ => Pattern::Stratified,
+                            };
+                            AreaMc {
+                                pattern,
+                                strata,
+                                replicates,
+                            }
+                            .row_with(ctx, i, &mut row, &mut rec)
+                        }
+                        EstimatorChoice::SemiAnalytic {
+                            points,
+                            rays: vis_rays,
+                            replicates,
+                        } => SemiAnalytic {
+                            nodes: Nodes::Gauss,
+                            points,
+                            vis_rays,
+                            replicates,
+                        }
+                        .row_with(ctx, i, &mut row, &mut rec),
+                        // Measured by the closest-hit branch above, or not ray-driven per
+                        // pair (the hemicube casts one ray per cell): nothing to record.
+                        EstimatorChoice::Hemisphere { .. } | EstimatorChoice::Hemicube { .. } => {}
+                    }
+                    rays
+                })
+                .collect(),
+        ),
+    }
+}
+
+/// The raw Embree loop over recorded rays, one query per ray (`rtcOccluded1` or
+/// `rtcIntersect1`), in chunks over the current rayon pool. Returns a checksum.
+pub fn raw_loop(vis: &Visibility, rec: &Recorded) -> u64 {
+    let e = vis.raw();
+    match rec {
+        Recorded::Segments(v) => v
+            .par_chunks(4096)
+            .map(|ch| {
+                ch.iter()
+                    .filter(|r| e.occluded1(r.0, r.1, 0.0, r.2))
+                    .count() as u64
+            })
+            .sum(),
+        Recorded::Rays(v) => v
+            .par_chunks(4096)
+            .map(|ch| {
+                ch.iter()
+                    .filter_map(|r| e.intersect1(r.0, r.1, 0.0, f32::INFINITY))
+                    .map(|h| h.prim as u64)
+                    .sum::<u64>()
+            })
+            .sum(),
+    }
+}
+
+/// The raw loop with 16-ray packets (`rtcOccluded16`) over consecutive recorded segments;
+/// `None` for closest-hit rays (no 16-wide closest-hit query is wrapped).
+pub fn raw_loop16(vis: &Visibility, rec: &Recorded) -> Option<u64> {
+    let Recorded::Segments(v) = rec else {
+        return None;
+    };
+    let e = vis.raw();
+    Some(
+        v.par_chunks(4096)
+            .map(|ch| {
+                let mut out = [false; 16];
+                let mut rays = [(Vec3::ZERO, Vec3::ZERO, 0.0, 0.0); 16];
+                let mut c = 0u64;
+                for p in ch.chunks(16) {
+                    for (k, r) in p.iter().enumerate() {
+                        rays[k] = (r.0, r.1, 0.0, r.2);
+                    }
+                    e.occluded16(&rays[..p.len()], &mut out);
+                    c += out[..p.len()].iter().filter(|&&o| o).count() as u64;
+                }
+                c
+            })
+            .sum(),
+    )
+}
+
+/// One line of the stage-versus-raw table.
+#[derive(Clone, Debug)]
+pub struct RatioLine {
+    /// Estimator name.
+    pub estimator: String,
+    /// Patches.
+    pub patches: usize,
+    /// Rays per stage run.
+    pub rays: u64,
+    /// Form-factor stage, rays per second (median).
+    pub stage: f64,
+    /// Raw single-ray loop, rays per second (median).
+    pub raw: f64,
+    /// Raw 16-ray packet loop, rays per second (median), for occlusion rays.
+    pub raw16: Option<f64>,
+    /// The stage with the queries replaced by a recorder, rays per second (one run).
+    pub sampling: f64,
+}
+
+impl RatioLine {
+    /// Stage rate over raw rate.
+    pub fn ratio(&self) -> f64 {
+        self.stage / self.raw
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Times the form-factor stage of `choice` against the raw loops over the same rays,
+/// alternating, `repeats` times each, on the current rayon pool.
+pub fn ratio(ctx: &Context, choice: &EstimatorChoice, repeats: usize) -> RatioLine {
+    let est = choice.build();
+    let t = Instant::now();
+    let rec = record(ctx, choice);
+    let sampling = rec.len() as f64 / t.elapsed().as_secs_f64();
+    let (mut stage, mut raw, mut raw16) = (Vec::new(), Vec::new(), Vec::new());
+    let mut rays = 0;
+    for _ in 0..repeats.max(1) {
+        let t = Instant::now();
+        let ff = formfactor::compute(ctx, est.as_ref(), &|_| {});
+        stage.push(ff.rays as f64 / t.elapsed().as_secs_f64());
+        rays = ff.rays;
+        drop(ff);
+        let t = Instant::now();
+        std::hint::black_box(raw_loop(ctx.vis, &rec));
+        raw.push(rec.len() as f64 / t.elapsed().as_secs_f64());
+        let t = Instant::now();
+        if std::hint::black_box(raw_loop16(ctx.vis, &rec)).is_some() {
+            raw16.push(rec.len() as f64 / t.elapsed().as_secs_f64());
+        }
+    }
+    debug_assert_eq!(rays as usize, rec.len());
+    RatioLine {
+        estimator: est.name(),
+        patches: ctx.patches.len(),
+        rays,
+        stage: median(stage),
+        raw: median(raw),
+        raw16: (!raw16.is_empty()).then(|| median(raw16)),
+        sampling,
+    }
+}
+
+/// Formats the stage-versus-raw table.
+pub fn format_ratios(lines: &[RatioLine], threads: usize) -> String {
+    use std::fmt::Write;
+    let mut o = String::new();
+    let _ = writeln!(
+        o,
+        "form-factor stage vs raw Embree over the same rays ({threads} threads, medians):"
+    );
+    let _ = writeln!(
+        o,
+        "{:<40} {:>8} {:>11} {:>13} {:>13} {:>15} {:>7} {:>16}",
+        "estimator",
+        "patches",
+        "rays",
+        "stage Mray/s",
+        "raw1 Mray/s",
+        "raw16 Mray/s",
+        "ratio",
+        "no-query Mray/s"
+    );
+    for l in lines {
+        let _ = writeln!(
+            o,
+            "{:<40} {:>8} {:>11} {:>13.3} {:>13.3} {:>15} {:>7.3} {:>16.3}",
+            l.estimator,
+            l.patches,
+            l.rays,
+            l.stage / 1e6,
+            l.raw / 1e6,
+            l.raw16
+                .map(|r| format!("{:.3}", r / 1e6))
+                .unwrap_or_else(|| "-".into()),
+            l.ratio(),
+            l.sampling / 1e6
+        );
+    }
+    o
+}
+
+/// Wall time and peak resident memory of one stage.
+#[derive(Clone, Debug)]
+pub struct StageLine {
+    /// Stage name.
+    pub stage: &'static str,
+    /// Wall-clock seconds.
+    pub seconds: f64,
+    /// Peak resident bytes during the stage (0 when unknown).
+    pub peak: u64,
+}
+
+/// Resets the kernel's peak-RSS mark (Linux >= 4.0); false when it cannot.
+fn reset_peak() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
+struct Stages(Vec<StageLine>);
+
+impl Stages {
+    fn run<T>(&mut self, stage: &'static str, f: impl FnOnce() -> T) -> T {
+        reset_peak();
+        let t = Instant::now();
+        let out = f();
+        let seconds = t.elapsed().as_secs_f64();
+        self.0.push(StageLine {
+            stage,
+            seconds,
+            peak: pipeline::peak_memory(),
+        });
+        out
+    }
+}
+
+/// What [`stages`] measured.
+#[derive(Clone, Debug)]
+pub struct StageReport {
+    /// Scene name.
+    pub scene: String,
+    /// Patches.
+    pub patches: usize,
+    /// Estimator name.
+    pub estimator: String,
+    /// Rays cast.
+    pub rays: u64,
+    /// Stored factors.
+    pub nnz: usize,
+    /// Per stage.
+    pub stages: Vec<StageLine>,
+    /// Solver iterations.
+    pub iterations: usize,
+    /// Why the solve failed, if it did.
+    pub solve_error: Option<String>,
+}
+
+impl StageReport {
+    /// Seconds of a stage (0 when absent).
+    pub fn seconds(&self, stage: &str) -> f64 {
+        self.stages
+            .iter()
+            .filter(|s| s.stage == stage)
+            .map(|s| s.seconds)
+            .sum()
+    }
+
+    /// Largest peak over all stages.
+    pub fn peak(&self) -> u64 {
+        self.stages.iter().map(|s| s.peak).max().unwrap_or(0)
+    }
+}
+
+/// Runs the bake's stages once, timing each: load, mesh, BVH, form-factor rows,
+/// assembly, solve (Gauss–Seidel, default options), output (per-vertex values and the EXR,
+/// written into `out_dir`).
+pub fn stages(
+    scene: &str,
+    resolution: Resolution,
+    choice: &EstimatorChoice,
+    seed: u64,
+    out_dir: &Path,
+) -> Result<StageReport> {
+    let mut st = Stages(Vec::new());
+    let scene = st.run("load", || Scene::load(scene))?;
+    let patches = st.run("mesh", || -> Result<PatchSet> {
+        let p = PatchSet::build(&scene, resolution)?;
+        p.validate()?;
+        Ok(p)
+    })?;
+    let vis = st.run("bvh", || Visibility::new(&patches))?;
+    let est = choice.build();
+    let ctx = Context {
+        patches: &patches,
+        vis: &vis,
+        seed,
+    };
+    reset_peak();
+    let (ff, split) = formfactor::compute_timed(&ctx, est.as_ref(), &|_| {});
+    let peak = pipeline::peak_memory();
+    st.0.push(StageLine {
+        stage: "form factors",
+        seconds: split.rows,
+        peak,
+    });
+    st.0.push(StageLine {
+        stage: "assembly",
+        seconds: split.assembly,
+        peak,
+    });
+    drop(vis);
+    let (rays, nnz) = (ff.rays, ff.f.nnz());
+    let solved = st.run("solve", || {
+        pipeline::solve_radiosity(&patches, &ff, Method::GaussSeidel, &Options::default())
+    });
+    // A solve that fails (e.g. area-to-area rows summing far above 1 on the cube's shared
+    // edges) is reported, and the output stage then writes the emission only.
+    let (b, iterations, solve_error) = match solved {
+        Ok((b, report)) => (b, report.iterations, None),
+        Err(e) => (
+            (0..patches.len()).map(|i| patches.emit(i)).collect(),
+            0,
+            Some(e.to_string()),
+        ),
+    };
+    let name = ff.estimator.clone();
+    drop(ff);
+    std::fs::create_dir_all(out_dir).map_err(|e| Error::io(out_dir, e))?;
+    st.run("output", || -> Result<()> {
+        let verts = output::interpolate(&patches, &b, output::DEFAULT_CREASE_DEG);
+        output::write_exr(&out_dir.join("radiosity.exr"), &verts, &scene.name)
+    })?;
+    Ok(StageReport {
+        scene: scene.name.clone(),
+        patches: patches.len(),
+        estimator: name,
+        rays,
+        nnz,
+        stages: st.0,
+        iterations,
+        solve_error,
+    })
+}
+
+/// Formats stage reports as one table (seconds and peak MiB per stage).
+pub fn format_stages(reports: &[StageReport]) -> String {
+    use std::fmt::Write;
+    let mut o = String::new();
+    let Some(first) = reports.first() else {
+        return o;
+    };
+    let _ = write!(
+        o,
+        "{:<8} {:>8} {:<34} {:>11} {:>11}",
+        "scene", "patches", "estimator", "rays", "factors"
+    );
+    for s in &first.stages {
+        let _ = write!(o, " {:>22}", format!("{} s / MiB", s.stage));
+    }
+    let _ = writeln!(o, " {:>9}", "B/factor");
+    for r in reports {
+        let _ = write!(
+            o,
+            "{:<8} {:>8} {:<34} {:>11} {:>11}",
+            r.scene, r.patches, r.estimator, r.rays, r.nnz
+        );
+        for s in &r.stages {
+            let _ = write!(
+                o,
+                " {:>22}",
+                format!("{:.3} / {:.0}", s.seconds, s.peak as f64 / 1048576.0)
+            );
+        }
+        let _ = writeln!(o, " {:>9}", FormFactors::BYTES_PER_ENTRY);
+        if let Some(e) = &r.solve_error {
+            let _ = writeln!(
+                o,
+                "  (solve failed: {})",
+                e.chars().take(160).collect::<String>()
+            );
+        }
+    }
+    o
+}
+
+/// CSV of stage reports: one line per (case, stage).
+pub fn stages_csv(reports: &[StageReport]) -> String {
+    let mut o = String::from("scene,patches,estimator,rays,factors,stage,seconds,peak_bytes\n");
+    for r in reports {
+        for s in &r.stages {
+            o.push_str(&format!(
+                "{},{},\"{}\",{},{},{},{:.6},{}\n",
+                r.scene, r.patches, r.estimator, r.rays, r.nnz, s.stage, s.seconds, s.peak
+            ));
+        }
+    }
+    o
+}
+
+/// Least-squares slope of `log y` against `log x` (NaN with fewer than two usable points).
+pub fn loglog_slope(points: &[(f64, f64)]) -> f64 {
+    let p: Vec<(f64, f64)> = points
+        .iter()
+        .filter(|(x, y)| *x > 0.0 && *y > 0.0)
+        .map(|(x, y)| (x.ln(), y.ln()))
+        .collect();
+    if p.len() < 2 {
+        return f64::NAN;
+    }
+    let n = p.len() as f64;
+    let (mx, my) = (
+        p.iter().map(|q| q.0).sum::<f64>() / n,
+        p.iter().map(|q| q.1).sum::<f64>() / n,
+    );
+    let sxy: f64 = p.iter().map(|q| (q.0 - mx) * (q.1 - my)).sum();
+    let sxx: f64 = p.iter().map(|q| (q.0 - mx).powi(2)).sum();
+    sxy / sxx
+}
+
+/// A rayon pool of `threads` workers, each with flush-to-zero and denormals-are-zero
+/// set when `ftz` (see [`visibility::flush_denormals`]).
+pub fn pool(threads: usize, ftz: bool) -> Result<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .start_handler(move |_| {
+            if ftz {
+                visibility::flush_denormals();
+            }
+        })
+        .build()
+        .map_err(|e| Error::Config(format!("cannot build a {threads}-thread pool: {e}")))
+}
+
+/// What `radiosity bench` runs.
+#[derive(Clone, Debug)]
+pub struct BenchConfig {
+    /// Scene of the ratio table.
+    pub scene: String,
+    /// Patches of the ratio table.
+    pub patches: usize,
+    /// Repeats per measurement (medians are reported).
+    pub repeats: usize,
+    /// Worker threads (0: all cores).
+    pub threads: usize,
+    /// Set flush-to-zero / denormals-are-zero on the workers.
+    pub ftz: bool,
+    /// Seed.
+    pub seed: u64,
+    /// Patch counts of the scaling run (empty: no scaling run).
+    pub scaling: Vec<usize>,
+    /// Largest patch count at which the scaling run also does area-to-area.
+    pub area_max: usize,
+    /// Where the scaling CSV and the EXR files go.
+    pub out_dir: std::path::PathBuf,
+}
+
+fn estimators() -> [EstimatorChoice; 3] {
+    [
+        EstimatorChoice::AreaStratified {
+            strata: 4,
+            replicates: 4,
+        },
+        EstimatorChoice::Hemisphere {
+            strata: 16,
+            replicates: 4,
+        },
+        EstimatorChoice::SemiAnalytic {
+            points: 3,
+            rays: 2,
+            replicates: 4,
+        },
+    ]
+}
+
+/// True for estimators whose rays grow as N² (all pairs).
+fn quadratic(c: &EstimatorChoice) -> bool {
+    !matches!(c, EstimatorChoice::Hemisphere { .. })
+}
+
+/// Runs `radiosity bench`, printing as it goes through `print`.
+pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
+    let threads = if cfg.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        cfg.threads
+    };
+    let pool = pool(threads, cfg.ftz)?;
+    if cfg.scaling.is_empty() {
+        let scene = Scene::load(&cfg.scene)?;
+        let patches = PatchSet::build(&scene, Resolution::Patches(cfg.patches))?;
+        let vis = Visibility::new(&patches)?;
+        let ctx = Context {
+            patches: &patches,
+            vis: &vis,
+            seed: cfg.seed,
+        };
+        let lines: Vec<RatioLine> = pool.install(|| {
+            estimators()
+                .iter()
+                .filter(|c| cfg.patches <= cfg.area_max || !quadratic(c))
+                .map(|c| ratio(&ctx, c, cfg.repeats))
+                .collect()
+        });
+        print(&format!(
+            "scene `{}`, Embree {}, ftz/daz {}",
+            cfg.scene,
+            vis.raw().version(),
+            if cfg.ftz { "on" } else { "off" }
+        ));
+        print(&format_ratios(&lines, threads));
+        let reports = pool.install(|| -> Result<Vec<StageReport>> {
+            estimators()
+                .iter()
+                .filter(|c| cfg.patches <= cfg.area_max || !quadratic(c))
+                .map(|c| {
+                    stages(
+                        &cfg.scene,
+                        Resolution::Patches(cfg.patches),
+                        c,
+                        cfg.seed,
+                        &cfg.out_dir,
+                    )
+                })
+                .collect()
+        })?;
+        print("time and peak memory per stage (one run each):");
+        print(&format_stages(&reports));
+        return Ok(());
+    }
+    scaling(cfg, &pool, threads, print)
+}
+
+fn scaling(
+    cfg: &BenchConfig,
+    pool: &rayon::ThreadPool,
+    threads: usize,
+    print: &mut dyn FnMut(&str),
+) -> Result<()> {
+    let hemi = EstimatorChoice::Hemisphere {
+        strata: 16,
+        replicates: 4,
+    };
+    let area = EstimatorChoice::AreaStratified {
+        strata: 4,
+        replicates: 4,
+    };
+    let mut all = Vec::new();
+    for scene in ["cornell", "cube"] {
+        for choice in [&hemi, &area] {
+            let mut reports = Vec::new();
+            for &n in &cfg.scaling {
+                if matches!(choice, EstimatorChoice::AreaStratified { .. }) && n > cfg.area_max {
+                    continue;
+                }
+                let r = pool.install(|| {
+                    stages(
+                        scene,
+                        Resolution::Patches(n),
+                        choice,
+                        cfg.seed,
+                        &cfg.out_dir,
+                    )
+                })?;
+                print(&format_stages(std::slice::from_ref(&r)));
+                reports.push(r);
+            }
+            if reports.len() >= 2 {
+                let mut line = format!("log-log slope in N, {scene}, {}:", reports[0].estimator);
+                for s in &reports[0].stages {
+                    let pts: Vec<(f64, f64)> = reports
+                        .iter()
+                        .map(|r| (r.patches as f64, r.seconds(s.stage)))
+                        .collect();
+                    line.push_str(&format!(" {} {:.2},", s.stage, loglog_slope(&pts)));
+                }
+                let pts: Vec<(f64, f64)> = reports
+                    .iter()
+                    .map(|r| (r.patches as f64, r.peak() as f64))
+                    .collect();
+                line.push_str(&format!(" peak memory {:.2}", loglog_slope(&pts)));
+                print(&line);
+            }
+            all.extend(reports);
+        }
+    }
+    print("\nall cases:");
+    print(&format_stages(&all));
+    std::fs::create_dir_all(&cfg.out_dir).map_err(|e| Error::io(&cfg.out_dir, e))?;
+    let csv = cfg.out_dir.join("scaling.csv");
+    std::fs::write(&csv, stages_csv(&all)).map_err(|e| Error::io(&csv, e))?;
+    print(&format!("wrote {}", csv.display()));
+
+    // Acceptance case and parallel efficiency: cube 32 x 32 per face, 1,024 rays per patch.
+    let scene = Scene::load("cube")?;
+    let patches = PatchSet::build(&scene, Resolution::MaxEdge(1.0 / 32.0))?;
+    let vis = Visibility::new(&patches)?;
+    let ctx = Context {
+        patches: &patches,
+        vis: &vis,
+        seed: cfg.seed,
+    };
+    let est = hemi.build();
+    let one = self::pool(1, cfg.ftz)?;
+    let (mut t1, mut tn) = (Vec::new(), Vec::new());
+    let mut rays = 0;
+    for _ in 0..cfg.repeats.max(1) {
+        for (p, v) in [(&one, &mut t1), (pool, &mut tn)] {
+            let t = Instant::now();
+            let ff = p.install(|| formfactor::compute(&ctx, est.as_ref(), &|_| {}));
+            v.push(t.elapsed().as_secs_f64());
+            rays = ff.rays;
+        }
+    }
+    let (t1, tn) = (median(t1), median(tn));
+    print(&format!(
+        "cube 32x32 per face ({} patches, {} rays, {}): form factors {:.3} s with {threads} threads, {:.3} s with 1; speed-up {:.2}x (efficiency {:.0}%)",
+        patches.len(),
+        rays,
+        est.name(),
+        tn,
+        t1,
+        t1 / tn,
+        100.0 * t1 / tn / threads as f64
+    ));
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn slope_of_a_power_law() {
+        let pts: Vec<(f64, f64)> = [1.0, 2.0, 4.0, 8.0]
+            .iter()
+            .map(|&x| (x, 3.0 * x * x))
+            .collect();
+        assert!((loglog_slope(&pts) - 2.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn recorded_rays_are_the_rays_cast() {
+        let scene = Scene::load("cube").unwrap();
+        let patches = PatchSet::build(&scene, Resolution::Patches(96)).unwrap();
+        let vis = Visibility::new(&patches).unwrap();
+        let ctx = Context {
+            patches: &patches,
+            vis: &vis,
+            seed: 1,
+        };
+        for choice in [
+            EstimatorChoice::AreaStratified {
+                strata: 2,
+                replicates: 2,
+            },
+            EstimatorChoice::Hemisphere {
+                strata: 4,
+                replicates: 2,
+            },
+            EstimatorChoice::SemiAnalytic {
+                points: 2,
+                rays: 2,
+                replicates: 2,
+            },
+        ] {
+            let ff = formfactor::compute(&ctx, choice.build().as_ref(), &|_| {});
+            assert_eq!(record(&ctx, &choice).len() as u64, ff.rays, "{choice:?}");
+        }
+    }
+
+    #[test]
+    fn factors_do_not_depend_on_the_thread_count() {
+        let scene = Scene::load("cornell").unwrap();
+        let patches = PatchSet::build(&scene, Resolution::Patches(60)).unwrap();
+        let vis = Visibility::new(&patches).unwrap();
+        let ctx = Context {
+            patches: &patches,
+            vis: &vis,
+            seed: 5,
+        };
+        for choice in [
+            EstimatorChoice::AreaStratified {
+                strata: 2,
+                replicates: 2,
+            },
+            EstimatorChoice::Hemisphere {
+                strata: 4,
+                replicates: 2,
+            },
+        ] {
+            let est = choice.build();
+            let run = |t: usize, ftz: bool| {
+                pool(t, ftz)
+                    .unwrap()
+                    .install(|| formfactor::compute(&ctx, est.as_ref(), &|_| {}))
+            };
+            let (a, b) = (run(1, false), run(3, true));
+            assert_eq!(a.f, b.f, "{choice:?}");
+            assert_eq!(a.se, b.se, "{choice:?}");
+        }
+    }
+}
