@@ -247,7 +247,12 @@ pub fn run(settings: &Settings) -> Result<Report> {
                 lit.material[i] = id;
             }
         }
-        run_case(&format!("cube-ceiling-rho-{rho}"), &lit, settings, &mut report)?;
+        run_case(
+            &format!("cube-ceiling-rho-{rho}"),
+            &lit,
+            settings,
+            &mut report,
+        )?;
     }
     let scene = Scene::load("cornell")?;
     let patches = PatchSet::build(&scene, Resolution::Patches(settings.cornell_patches))?;
