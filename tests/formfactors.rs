@@ -33,7 +33,7 @@ fn plates_match_howell_within_three_standard_errors() {
     let estimators = [
         (
             EstimatorChoice::AreaStratified {
-                strata: 16,
+                strata: 64,
                 replicates: 16,
             },
             0.05,

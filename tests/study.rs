@@ -21,22 +21,19 @@ fn rms(runs: &[Run]) -> f64 {
     (runs.iter().map(|r| r.error().powi(2)).sum::<f64>() / runs.len() as f64).sqrt()
 }
 
-/// At 65 536 samples per pair on the far parallel squares, Sobol pairs are at least 4x more
-/// accurate (RMS over 20 seeds, all in one run) than independent uniform pairs; the
-/// stratified pattern is not worse than uniform.
+/// At about 1e5 samples per pair on the far parallel squares, stratified and Sobol pairs
+/// are each at least 4x more accurate (RMS over 40 seeds, all in one run) than independent
+/// uniform pairs.
 ///
-/// Measured (docs/ESTIMATORS.md): uniform 1.2e-6, stratified 8.4e-7 (1.4x), Sobol 2.6e-9
-/// (460x). The stratified pattern stratifies x and y separately and pairs the strata at
-/// random, so the part of the kernel that depends on x - y jointly is not stratified: on
-/// this pair it gains only 1.4x, and the 4x asked of it does not hold. The RMS over 20
-/// seeds has a relative spread near 1/sqrt(2 × 20) = 16%, so Sobol's true ratio falling
-/// under 4 would take a 100-fold fluctuation; stratified's 1.4 falling under 1 a 30% one
-/// (about 2 sigma: the bound is loose on purpose).
+/// Measured at 65 536 (docs/ESTIMATORS.md): uniform 1.2e-6, stratified 2.1e-7 (5.6x; one
+/// jittered pair per cell of a 4D grid over both patches), Sobol 2.6e-9 (460x). The RMS over
+/// 40 seeds has a relative spread near 1/sqrt(2 × 40) = 11%, so a ratio near 5.6 falling
+/// under 4 takes a 2-sigma fluctuation of the ratio, and Sobol's a 100-fold one.
 #[test]
 fn stratified_and_sobol_beat_uniform_by_4x_on_far_parallel() {
     let p = prepared(&["far"]);
-    let budget = 1 << 16;
-    let seeds = 0..20u64;
+    let budget = 100_000;
+    let seeds = 0..40u64;
     let run = |kind| -> Vec<Run> {
         seeds
             .clone()
@@ -47,7 +44,7 @@ fn stratified_and_sobol_beat_uniform_by_4x_on_far_parallel() {
     let (eu, est, eso) = (rms(&u), rms(&st), rms(&so));
     eprintln!("far, {budget} pairs: RMS uniform {eu:.2e}, stratified {est:.2e}, sobol {eso:.2e}");
     assert!(eu > 0.0);
-    assert!(eu >= est, "stratified worse than uniform: {:.2}x", eu / est);
+    assert!(eu >= 4.0 * est, "stratified only {:.1}x better", eu / est);
     assert!(eu >= 4.0 * eso, "sobol only {:.1}x better", eu / eso);
 }
 

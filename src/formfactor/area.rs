@@ -7,9 +7,10 @@
 //!
 //! an unbiased estimate of `1/(A_a A_b) ∫∫ cos cos V / (π r²)`, so that `F_ab = A_b I` and
 //! `F_ba = A_a I` (radiosidade.md, "Fator de Forma" and "Teorema da Reciprocidade").
-//! Points are independent uniform ([`Pattern::Uniform`]) or jittered on an `s x s` grid of
-//! strata of each patch with the strata of b randomly paired with those of a
-//! ([`Pattern::Stratified`], a Latin pairing that keeps the 4D estimate unbiased), or are
+//! Points are independent uniform ([`Pattern::Uniform`]), or one jittered pair in each cell
+//! of a `t x t x t x t` grid of the 4D domain `(x_u, x_v, y_u, y_v)` ([`Pattern::Stratified`]:
+//! jittered sampling of the whole double integral, so that the kernel's joint dependence on
+//! x and y is stratified, not only its margins; `t = round(sqrt(s))`, `t⁴ ≈ s²` pairs), or are
 //! the first `n` points of a 4D Owen-scrambled Sobol sequence, `(x_u, x_v, y_u, y_v)`
 //! ([`Pattern::Sobol`]: randomized quasi-Monte Carlo with Burley's hash-based Owen
 //! scrambling and index shuffling, "Practical Hash-based Owen Scrambling", JCGT 2020, via
@@ -29,14 +30,14 @@
 use glam::Vec3;
 
 use super::{Context, Entry, Estimator, Row};
-use crate::sampling::{jittered, shuffle, Pcg32};
+use crate::sampling::Pcg32;
 
 /// How points are placed on each patch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Pattern {
     /// Independent uniform points.
     Uniform,
-    /// Jittered strata on each patch, strata paired by a random permutation.
+    /// One jittered pair per cell of a 4D grid over both patches.
     Stratified,
     /// Owen-scrambled 4D Sobol points (randomized QMC); best with `strata²` a power of 2.
     Sobol,
@@ -47,7 +48,8 @@ pub enum Pattern {
 pub struct AreaMc {
     /// Point placement.
     pub pattern: Pattern,
-    /// Strata per side: each replicate uses `strata²` point pairs.
+    /// Samples per side: each replicate uses `strata²` point pairs (`t⁴`, `t =
+    /// round(sqrt(strata))`, for the stratified pattern).
     pub strata: usize,
     /// Independent replicates (>= 2) for the standard error.
     pub replicates: usize,
@@ -64,9 +66,23 @@ impl Default for AreaMc {
 }
 
 impl AreaMc {
+    /// Cells per dimension of the 4D grid of [`Pattern::Stratified`]: `round(sqrt(strata))`,
+    /// so that a replicate has `t⁴ ≈ strata²` pairs (exactly, when `strata` is a square).
+    pub fn grid(&self) -> usize {
+        ((self.strata as f64).sqrt().round() as usize).max(1)
+    }
+
+    /// Point pairs per replicate: `strata²`, or `t⁴` for the stratified pattern.
+    pub fn pairs_per_replicate(&self) -> usize {
+        match self.pattern {
+            Pattern::Stratified => self.grid().pow(4),
+            _ => self.strata * self.strata,
+        }
+    }
+
     /// Point pairs per patch pair.
     pub fn pairs(&self) -> usize {
-        self.strata * self.strata * self.replicates
+        self.pairs_per_replicate() * self.replicates.max(2)
     }
 }
 
@@ -87,8 +103,9 @@ impl Estimator for AreaMc {
             Pattern::Sobol => "area-sobol",
         };
         format!(
-            "{kind}(pairs={}x{}x{})",
-            self.strata, self.strata, self.replicates
+            "{kind}(pairs={}x{})",
+            self.pairs_per_replicate(),
+            self.replicates.max(2)
         )
     }
 
@@ -135,7 +152,7 @@ impl AreaMc {
         if behind(ctx, a, b) || behind(ctx, b, a) {
             return None;
         }
-        let m = self.strata * self.strata;
+        let m = self.pairs_per_replicate();
         let reps = self.replicates.max(2);
         let mut xs = Vec::with_capacity(m);
         let mut ys = Vec::with_capacity(m);
@@ -145,9 +162,25 @@ impl AreaMc {
             let mut rng = Pcg32::keyed(ctx.seed, a as u64, b as u64, r as u64);
             match self.pattern {
                 Pattern::Stratified => {
-                    jittered(&mut rng, self.strata, &mut xs);
-                    jittered(&mut rng, self.strata, &mut ys);
-                    shuffle(&mut rng, &mut ys);
+                    // One jittered pair in every cell of a t x t x t x t grid of the 4D
+                    // domain (x on a, y on b): the joint dependence of the kernel on x and y
+                    // is stratified too, not only its margins.
+                    let t = self.grid();
+                    let inv = 1.0 / t as f64;
+                    xs.clear();
+                    ys.clear();
+                    for a1 in 0..t {
+                        for a2 in 0..t {
+                            for b1 in 0..t {
+                                for b2 in 0..t {
+                                    let j =
+                                        |c: usize, r: &mut Pcg32| (c as f64 + r.next_f64()) * inv;
+                                    xs.push((j(a1, &mut rng), j(a2, &mut rng)));
+                                    ys.push((j(b1, &mut rng), j(b2, &mut rng)));
+                                }
+                            }
+                        }
+                    }
                 }
                 Pattern::Sobol => {
                     // Owen scrambling with a fresh seed per replicate.
