@@ -639,7 +639,7 @@ pub(crate) fn divergence(
 }
 
 /// The hint of a run stopped by the iteration cap.
-fn cap_hint(history: &[f64], tolerance: f64, gain: &Gain) -> String {
+fn cap_hint(solver: &str, history: &[f64], tolerance: f64, gain: &Gain) -> String {
     let blame = gain.blame();
     if !blame.is_empty() {
         return blame;
@@ -655,7 +655,12 @@ fn cap_hint(history: &[f64], tolerance: f64, gain: &Gain) -> String {
             let more = ((tolerance.max(f64::MIN_POSITIVE) / last).ln() / rate.ln()).ceil();
             if more.is_finite() && more > 0.0 {
                 hint.push_str(&format!(
-                    " (the residual falls by {rate:.4} per iteration: about {more:.0} more)"
+                    " (the residual falls by {rate:.4} per iteration: about {more:.0} more{})",
+                    if solver == progressive::NAME {
+                        " shots; for progressive the flag counts patches x N shots"
+                    } else {
+                        ""
+                    }
                 ));
             }
         }
@@ -697,7 +702,7 @@ pub(crate) fn finish(
     if converged {
         return Ok((out.b, report));
     }
-    let hint = cap_hint(&report.history, opts.tolerance, gain);
+    let hint = cap_hint(solver, &report.history, opts.tolerance, gain);
     if opts.keep_partial {
         report.notes.push(format!(
             "stopped after {} iterations at residual {:.3e} (tolerance {:.1e}){hint}",

@@ -1,6 +1,6 @@
 //! The solver study (`radiosity study-solvers`): residual against iterations and against
-//! time for every solver, on the closed cube (every face emitting, `rho` = 0.5, 0.9, 0.99,
-//! 0.999) and on the Cornell box; CSV files and SVG/PNG charts. Unlike the solvers, this
+//! time for every solver, on the closed cube (`rho` = 0.5, 0.9, 0.99, 0.999, every face
+//! emitting, and again lit by its ceiling only) and on the Cornell box; CSV files and SVG/PNG charts. Unlike the solvers, this
 //! driver does I/O: it is the one place in [`crate::solve`] that writes files.
 //!
 //! What is plotted, so that the methods are comparable (Cohen and Wallace 1993, §5.3, compare
@@ -107,6 +107,20 @@ pub struct Report {
     pub files: Vec<PathBuf>,
 }
 
+/// Points kept per curve (CSV and charts): progressive refinement records millions of shots.
+pub const MAX_POINTS: usize = 400;
+
+/// Keeps at most `max` points, evenly spaced by index, always the first and the last.
+fn thin<T: Copy>(v: Vec<T>, max: usize) -> Vec<T> {
+    if v.len() <= max || max < 2 {
+        return v;
+    }
+    let last = v.len() - 1;
+    let mut out: Vec<T> = (0..max - 1).map(|k| v[k * last / (max - 1)]).collect();
+    out.push(v[last]);
+    out
+}
+
 const METHODS: [Method; 5] = [
     Method::Jacobi,
     Method::GaussSeidel,
@@ -146,6 +160,7 @@ fn run_case(
                 if let Some(last) = curve.last_mut() {
                     last.2 = r.residual;
                 }
+                let curve = thin(curve, MAX_POINTS);
                 Run {
                     case: case.into(),
                     solver: r.solver.clone(),
@@ -217,6 +232,27 @@ pub fn run(settings: &Settings) -> Result<Report> {
         scene.set_material("wall", [rho; 3], [1.0; 3])?;
         let patches = PatchSet::build(&scene, Resolution::MaxEdge(settings.cube_edge))?;
         run_case(&format!("cube-rho-{rho}"), &patches, settings, &mut report)?;
+        // The same cube lit by its ceiling (y = 1) only: with every face emitting, B is
+        // nearly constant and CG finds it at once; this case shows the methods' rates.
+        let mut lit = patches.clone();
+        let wall = lit.material[0] as usize;
+        lit.materials[wall].emit = [0.0; 3];
+        let mut ceiling = lit.materials[wall].clone();
+        ceiling.name = "ceiling".into();
+        ceiling.emit = [1.0; 3];
+        lit.materials.push(ceiling);
+        let id = (lit.materials.len() - 1) as u32;
+        for i in 0..lit.len() {
+            if lit.centroid[i].y > 1.0 - 1e-3 {
+                lit.material[i] = id;
+            }
+        }
+        run_case(
+            &format!("cube-ceiling-rho-{rho}"),
+            &lit,
+            settings,
+            &mut report,
+        )?;
     }
     let scene = Scene::load("cornell")?;
     let patches = PatchSet::build(&scene, Resolution::Patches(settings.cornell_patches))?;
@@ -266,16 +302,18 @@ mod tests {
             std::env::temp_dir().join(format!("radiosity-solver-study-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         let report = run(&Settings::quick(dir.clone())).unwrap();
-        // 2 cube cases + Cornell, 5 solvers each.
-        assert_eq!(report.runs.len(), 15);
+        // 2 x 2 cube cases + Cornell, 5 solvers each.
+        assert_eq!(report.runs.len(), 25);
         for r in &report.runs {
             assert_eq!(r.status, "ok", "{} {}", r.case, r.solver);
             assert!(r.residual.is_finite() && r.residual <= 1e-8);
             assert!(r.curve.iter().all(|p| p.0.is_finite() && p.1.is_finite()));
         }
         let summary = std::fs::read_to_string(dir.join("solvers-summary.csv")).unwrap();
-        assert_eq!(summary.lines().count(), 16);
+        assert_eq!(summary.lines().count(), 26);
         assert!(dir.join("residual-vs-iterations-cornell.svg").exists());
+        assert!(report.runs.iter().all(|r| r.curve.len() <= MAX_POINTS));
+        assert_eq!(thin((0..10).collect(), 4), vec![0, 3, 6, 9]);
         assert!(dir.join("residual-vs-time-cube-rho-0.9.png").exists());
         let _ = std::fs::remove_dir_all(&dir);
     }
