@@ -91,6 +91,9 @@ struct StudyArgs {
     /// A small study (three budgets, two seeds, 20 calibration seeds), for tests.
     #[arg(long)]
     quick: bool,
+    /// Study the solvers instead (same as `study-solvers`; default folder docs/solvers).
+    #[arg(long)]
+    solvers: bool,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -414,6 +417,27 @@ fn bake(args: &BakeArgs) -> Result<()> {
     Ok(())
 }
 
+fn study_solvers(args: &StudySolversArgs) -> Result<()> {
+    let settings = if args.quick {
+        radiosity::solve::study::Settings::quick(args.output.clone())
+    } else {
+        radiosity::solve::study::Settings::full(args.output.clone())
+    };
+    let report = radiosity::solve::study::run(&settings)?;
+    for r in &report.runs {
+        println!(
+            "{:<16} {:<13} {:>8} iterations {:>9.3}s residual {:.2e} {}",
+            r.case, r.solver, r.iterations, r.seconds, r.residual, r.status
+        );
+    }
+    println!(
+        "wrote {} files to {}",
+        report.files.len(),
+        args.output.display()
+    );
+    Ok(())
+}
+
 /// Parses the command line and runs it.
 pub fn run() -> Result<()> {
     let cli = Cli::parse();
@@ -462,26 +486,18 @@ pub fn run() -> Result<()> {
             );
             Ok(())
         }
-        Command::StudySolvers(args) => {
-            let settings = if args.quick {
-                radiosity::solve::study::Settings::quick(args.output.clone())
+        Command::Study(args) if args.solvers => {
+            let output = if args.output == std::path::Path::new("study") {
+                PathBuf::from("docs/solvers")
             } else {
-                radiosity::solve::study::Settings::full(args.output.clone())
+                args.output.clone()
             };
-            let report = radiosity::solve::study::run(&settings)?;
-            for r in &report.runs {
-                println!(
-                    "{:<16} {:<13} {:>8} iterations {:>9.3}s residual {:.2e} {}",
-                    r.case, r.solver, r.iterations, r.seconds, r.residual, r.status
-                );
-            }
-            println!(
-                "wrote {} files to {}",
-                report.files.len(),
-                args.output.display()
-            );
-            Ok(())
+            study_solvers(&StudySolversArgs {
+                output,
+                quick: args.quick,
+            })
         }
+        Command::StudySolvers(args) => study_solvers(args),
         Command::Study(args) => {
             if let Some(n) = args.threads {
                 if n == 0 {

@@ -5,4 +5,5 @@ mod formfactors;
 mod invalid;
 mod shelf;
 mod stability;
+mod store;
 mod study;

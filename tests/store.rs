@@ -1,0 +1,133 @@
+//! The reusable factors folder: written by `factors`, reused by `bake --factors`, refused
+//! for other geometry.
+
+use std::process::Command;
+
+use radiosity::mesh::{PatchSet, Resolution};
+use radiosity::pipeline::{self, BakeConfig, EstimatorChoice, Quiet};
+use radiosity::repair::Repair;
+use radiosity::scene::Scene;
+use radiosity::store;
+
+fn temp_dir(tag: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("radiosity-store-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+#[test]
+fn factors_round_trip_through_matrix_market() {
+    let dir = temp_dir("roundtrip");
+    let est = EstimatorChoice::AreaStratified {
+        strata: 4,
+        replicates: 2,
+    };
+    let s = pipeline::factors(
+        "cornell",
+        Resolution::Patches(80),
+        &est,
+        9,
+        &dir,
+        Repair::None,
+        &Quiet,
+    )
+    .expect("factors");
+    for f in ["F.mtx", "stderr.mtx", "patches.csv", "provenance.json"] {
+        assert!(dir.join(f).exists(), "{f} missing");
+    }
+    let scene = Scene::load("cornell").expect("scene");
+    let patches = PatchSet::build(&scene, Resolution::Patches(80)).expect("patches");
+    assert_eq!(s.provenance.patches, patches.len());
+    let (ff, _, _) = pipeline::form_factors(&patches, &est, 9, &Quiet).expect("recompute");
+    let back = store::read(&dir, &patches).expect("read back");
+    assert_eq!(back.f.indptr(), ff.f.indptr());
+    assert_eq!(back.f.indices(), ff.f.indices());
+    // Written with `{:e}` (shortest round-trip form): values come back bit for bit.
+    assert_eq!(back.f.data(), ff.f.data());
+    assert_eq!(back.se, ff.se);
+    let csv = std::fs::read_to_string(dir.join("patches.csv")).expect("csv");
+    assert_eq!(csv.lines().count(), patches.len() + 1);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn bake_reuses_factors_and_refuses_other_geometry() {
+    let dir = temp_dir("reuse");
+    let factors = dir.join("factors");
+    let est = EstimatorChoice::AreaStratified {
+        strata: 4,
+        replicates: 2,
+    };
+    pipeline::factors(
+        "cornell",
+        Resolution::Patches(80),
+        &est,
+        3,
+        &factors,
+        Repair::None,
+        &Quiet,
+    )
+    .expect("factors");
+    let reuse = BakeConfig {
+        out_dir: dir.join("bake"),
+        resolution: Resolution::Patches(80),
+        estimator: est.clone(),
+        seed: 3,
+        preview: (32, 32),
+        factors: Some(factors.clone()),
+        ..BakeConfig::default()
+    };
+    let with = pipeline::bake(&reuse, &Quiet).expect("bake with stored factors");
+    assert_eq!(
+        with.stage_seconds("form factors"),
+        0.0,
+        "no rays may be cast"
+    );
+    let fresh = pipeline::bake(
+        &BakeConfig {
+            factors: None,
+            ..reuse.clone()
+        },
+        &Quiet,
+    )
+    .expect("bake computing factors");
+    let (a, b) = (
+        radiosity::output::read_exr(&dir.join("bake/radiosity.exr")).expect("exr"),
+        fresh.vertices,
+    );
+    assert_eq!(a.vertex_count, b);
+
+    // Other subdivision: refused, naming the folder and the patch counts.
+    let other = BakeConfig {
+        resolution: Resolution::Patches(200),
+        ..reuse.clone()
+    };
+    let err = pipeline::bake(&other, &Quiet)
+        .expect_err("mismatch must be refused")
+        .to_string();
+    assert!(
+        err.contains("provenance.json") && err.contains("patches"),
+        "{err}"
+    );
+
+    // Other scene through the command line: refused with exit status 1.
+    let out = Command::new(env!("CARGO_BIN_EXE_radiosity"))
+        .args([
+            "bake",
+            "cube",
+            "--patches",
+            "80",
+            "--size",
+            "32x32",
+            "--factors",
+        ])
+        .arg(&factors)
+        .arg("-o")
+        .arg(dir.join("cube"))
+        .output()
+        .expect("binary runs");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("factors were computed for"), "{stderr}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
