@@ -226,61 +226,91 @@ impl FormFactors {
 
     /// Row sums, reciprocity and range checks.
     pub fn diagnostics(&self) -> Diagnostics {
+        use rayon::prelude::*;
         let n = self.len();
-        let mut d = Diagnostics {
+        let empty = || Diagnostics {
             min_row_sum: f64::INFINITY,
             max_row_sum: f64::NEG_INFINITY,
-            nnz: self.f.nnz(),
             ..Default::default()
         };
-        let (mut pairs, mut beyond) = (0usize, 0usize);
-        for (i, row) in self.f.outer_iterator().enumerate() {
-            let s: f64 = row.data().iter().sum();
-            if row.nnz() == 0 {
-                d.empty_rows += 1;
-            }
-            if s > 1.0 + (3.0 * self.row_sum_stderr(i)).max(1e-9) {
-                d.rows_over_one += 1;
-            }
-            if s < d.min_row_sum {
-                d.min_row_sum = s;
-            }
-            if s > d.max_row_sum {
-                d.max_row_sum = s;
-                d.max_row = i;
-            }
-            for (j, &f) in row.iter() {
-                if !f.is_finite() || !(0.0..=1.0).contains(&f) {
-                    d.out_of_range += 1;
-                }
-                let f_back = self.get(j, i);
-                let fij = self.area[i] * f;
-                let fji = self.area[j] * f_back;
-                let m = fij.abs().max(fji.abs());
-                if m > 0.0 {
-                    let gap = (fij - fji).abs();
-                    d.reciprocity = d.reciprocity.max(gap / m);
-                    if f.max(f_back) >= SIGNIFICANT {
-                        d.reciprocity_significant = d.reciprocity_significant.max(gap / m);
-                    }
-                    let se =
-                        (self.area[i] * self.stderr(i, j)).hypot(self.area[j] * self.stderr(j, i));
-                    pairs += 1;
-                    if gap > 3.0 * se && gap > 1e-12 * m {
-                        beyond += 1;
-                    }
-                }
-            }
-        }
+        // Rows in parallel; `reciprocity_beyond_3se` carries the count of pairs beyond 3
+        // standard errors and `nnz` the count of pairs until the final division.
+        let mut d = (0..n)
+            .into_par_iter()
+            .map(|i| self.row_diagnostics(i))
+            .reduce(empty, |a, b| Diagnostics {
+                min_row_sum: a.min_row_sum.min(b.min_row_sum),
+                max_row_sum: a.max_row_sum.max(b.max_row_sum),
+                max_row: if b.max_row_sum > a.max_row_sum {
+                    b.max_row
+                } else {
+                    a.max_row
+                },
+                reciprocity: a.reciprocity.max(b.reciprocity),
+                reciprocity_significant: a.reciprocity_significant.max(b.reciprocity_significant),
+                reciprocity_beyond_3se: a.reciprocity_beyond_3se + b.reciprocity_beyond_3se,
+                empty_rows: a.empty_rows + b.empty_rows,
+                rows_over_one: a.rows_over_one + b.rows_over_one,
+                out_of_range: a.out_of_range + b.out_of_range,
+                nnz: a.nnz + b.nnz,
+            });
+        let pairs = d.nnz;
         d.reciprocity_beyond_3se = if pairs > 0 {
-            beyond as f64 / pairs as f64
+            d.reciprocity_beyond_3se / pairs as f64
         } else {
             0.0
         };
+        d.nnz = self.f.nnz();
         if n == 0 {
             d.min_row_sum = 0.0;
             d.max_row_sum = 0.0;
         }
+        d
+    }
+
+    /// The diagnostics of row `i` alone (see [`FormFactors::diagnostics`] for the two
+    /// counters that are carried as counts here).
+    fn row_diagnostics(&self, i: usize) -> Diagnostics {
+        let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));
+        let (cols, vals, ses) = (
+            &self.f.indices()[lo..hi],
+            &self.f.data()[lo..hi],
+            &self.se[lo..hi],
+        );
+        let s: f64 = vals.iter().sum();
+        let mut d = Diagnostics {
+            min_row_sum: s,
+            max_row_sum: s,
+            max_row: i,
+            empty_rows: usize::from(vals.is_empty()),
+            rows_over_one: usize::from(s > 1.0 + (3.0 * self.row_sum_stderr(i)).max(1e-9)),
+            ..Default::default()
+        };
+        let (mut pairs, mut beyond) = (0usize, 0usize);
+        for ((&j, &f), &se_ij) in cols.iter().zip(vals).zip(ses) {
+            if !f.is_finite() || !(0.0..=1.0).contains(&f) {
+                d.out_of_range += 1;
+            }
+            let back = self.f.nnz_index(j, i).map(|k| k.0);
+            let (f_back, se_ji) = back.map_or((0.0, 0.0), |k| (self.f.data()[k], self.se[k]));
+            let fij = self.area[i] * f;
+            let fji = self.area[j] * f_back;
+            let m = fij.abs().max(fji.abs());
+            if m > 0.0 {
+                let gap = (fij - fji).abs();
+                d.reciprocity = d.reciprocity.max(gap / m);
+                if f.max(f_back) >= SIGNIFICANT {
+                    d.reciprocity_significant = d.reciprocity_significant.max(gap / m);
+                }
+                let se = (self.area[i] * se_ij).hypot(self.area[j] * se_ji);
+                pairs += 1;
+                if gap > 3.0 * se && gap > 1e-12 * m {
+                    beyond += 1;
+                }
+            }
+        }
+        d.reciprocity_beyond_3se = beyond as f64;
+        d.nnz = pairs;
         d
     }
 

@@ -381,11 +381,13 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
             (ff, embree)
         }
     };
-    let (ff, repair_report) = repair::repair(&ff, cfg.repair);
-    let diagnostics = ff.diagnostics();
-    let max_row_sum_stderr = (0..ff.len())
-        .map(|i| ff.row_sum_stderr(i))
-        .fold(0.0, f64::max);
+    let (ff, repair_report) = timer.run("repair", 0, || repair::repair(&ff, cfg.repair));
+    let (diagnostics, max_row_sum_stderr) = timer.run("diagnostics", 0, || {
+        let worst = (0..ff.len())
+            .map(|i| ff.row_sum_stderr(i))
+            .fold(0.0, f64::max);
+        (ff.diagnostics(), worst)
+    });
     let (b, report) = timer.run("solve", 0, || {
         solve_radiosity(&patches, &ff, cfg.method, &cfg.solve)
     })?;
