@@ -76,17 +76,7 @@ pub fn layout_size(n: usize) -> (usize, usize) {
 
 /// Writes the bake `v` of scene `scene_name` to `path` (layout in the module docs).
 pub fn write_exr(path: &Path, v: &VertexRadiosity, scene_name: &str) -> Result<()> {
-    let n = v.positions.len();
-    if v.normals.len() != n || v.rgb.len() != n {
-        return Err(Error::Output {
-            path: path.to_path_buf(),
-            msg: format!(
-                "inconsistent bake: {n} positions, {} normals, {} colours",
-                v.normals.len(),
-                v.rgb.len()
-            ),
-        });
-    }
+    let n = v.checked_len(path)?;
     let count = i32::try_from(n).map_err(|_| Error::Output {
         path: path.to_path_buf(),
         msg: format!("{n} vertices are too many for one EXR bake"),

@@ -39,17 +39,7 @@ use crate::error::{Error, Result};
 /// Writes `v` to `path` as a binary little-endian PLY with vertex colours tone-mapped at
 /// `exposure` (a linear scale, e.g. [`Image::exposure`](super::Image::exposure)).
 pub fn write_ply(path: &Path, v: &VertexRadiosity, exposure: f32) -> Result<()> {
-    let n = v.positions.len();
-    if v.normals.len() != n || v.rgb.len() != n {
-        return Err(Error::Output {
-            path: path.to_path_buf(),
-            msg: format!(
-                "inconsistent bake: {n} positions, {} normals, {} colours",
-                v.normals.len(),
-                v.rgb.len()
-            ),
-        });
-    }
+    let n = v.checked_len(path)?;
     if n > i32::MAX as usize {
         return Err(Error::Output {
             path: path.to_path_buf(),

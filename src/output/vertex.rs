@@ -60,6 +60,23 @@ pub struct VertexRadiosity {
 }
 
 impl VertexRadiosity {
+    /// Number of vertices, after checking that positions, normals and colours agree;
+    /// `path` names the file being written in the error.
+    pub fn checked_len(&self, path: &std::path::Path) -> crate::error::Result<usize> {
+        let n = self.positions.len();
+        if self.normals.len() != n || self.rgb.len() != n {
+            return Err(crate::error::Error::Output {
+                path: path.to_path_buf(),
+                msg: format!(
+                    "inconsistent bake: {n} positions, {} normals, {} colours",
+                    self.normals.len(),
+                    self.rgb.len()
+                ),
+            });
+        }
+        Ok(n)
+    }
+
     /// Number of vertices.
     pub fn len(&self) -> usize {
         self.positions.len()
