@@ -7,6 +7,7 @@ distance 1 (Howell C-11, F = 0.1998249), and the closed unit cube with n x n pat
 face (face-to-face factors aggregated from the patch matrix: adjacent faces C-14, opposite
 faces C-11; rows of the patch matrix sum to 1). Prints one table: time and error per tool.
 """
+import argparse
 import math
 import os
 import subprocess
@@ -16,7 +17,7 @@ import time
 
 import numpy as np
 
-PERP, PARA = 0.2000438, 0.1998249  # radiosity::analytic, Howell C-14 and C-11
+PERP, PARA = 0.20004377607540316, 0.19982489569838746  # Howell C-14 and C-11 (radiosity::analytic)
 BIN = os.environ.get("RADIOSITY", "target/release/radiosity")
 
 
@@ -118,13 +119,17 @@ def run_pyviewfactor(case, n):
 
 
 def run_raystrack(case, n, rays):
+    """Cosine tracing with `rays` rays per patch in all: raystrack's emitter grid is
+    max(4, ceil(sqrt(area * density))) cells per side (4 x 4 for every patch here, density
+    4), each cell shoots `rays_per_cell` rays per replicate, and 4 replicates run."""
     import raystrack as rt
     quads = case_geometry(case, n)
     surfaces = [rt.Surface(f"p{k}", rt.Mesh(q, np.array([[0, 1, 2], [0, 2, 3]])))
                 for k, q in enumerate(quads)]
     scene = rt.Scene(surfaces)
-    side = int(math.isqrt(rays // 64))
-    opts = rt.SolveOptions(sampling=rt.Sampling(density=max(side, 1), rays_per_cell=64, seed=1),
+    per_cell = rays // (16 * 4)
+    assert per_cell * 16 * 4 == rays, rays
+    opts = rt.SolveOptions(sampling=rt.Sampling(density=4, rays_per_cell=per_cell, seed=1),
                            accuracy=rt.Accuracy(min_replicates=4, max_replicates=4))
     t = time.perf_counter()
     with rt.Solver(scene, device="cpu") as solver:
@@ -140,38 +145,48 @@ def run_raystrack(case, n, rays):
     return dt, F, np.array([x[0] for x in na]), np.array([x[1] for x in na])
 
 
+CASES = {"plates-perpendicular": ("plates-perpendicular", 1), "plates-parallel": ("plates-parallel", 1),
+         "cube8": ("cube", 8), "cube16": ("cube", 16), "cube32": ("cube", 32)}
+
+
 def main():
-    cases = [("plates-perpendicular", 1), ("plates-parallel", 1), ("cube", 8), ("cube", 16),
-             ("cube", 32)]
-    tools = [
-        ("radiosity semi (default)", lambda c, n: run_radiosity(c, n, [])),
-        ("radiosity hemisphere 1024 rays/patch",
-         lambda c, n: run_radiosity(c, n, ["--estimator", "hemisphere", "--samples", "16"])),
-        ("raystrack 2.0.0 cosine, 1024 rays/patch x 4", lambda c, n: run_raystrack(c, n, 1024)),
-        ("pyViewFactor 1.1.0 SA-30", run_pyviewfactor),
-    ]
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--cases", default=",".join(CASES), help="comma-separated, of: " + ", ".join(CASES))
+    ap.add_argument("--tools", default="semi,hemisphere,raystrack,pyviewfactor",
+                    help="comma-separated, of: semi, hemisphere, raystrack, pyviewfactor")
+    ap.add_argument("--semi-args", default="--tol 1e-10",
+                    help="extra arguments of `radiosity factors` for the semi-analytic estimator")
+    args = ap.parse_args()
+    semi = args.semi_args.split()
+    tools = {
+        "semi": (f"radiosity semi {' '.join(semi)}", lambda c, n: run_radiosity(c, n, semi)),
+        "hemisphere": ("radiosity hemisphere 16x16x4 = 1024 rays/patch",
+                       lambda c, n: run_radiosity(c, n, ["--estimator", "hemisphere", "--samples", "16"])),
+        "raystrack": ("raystrack 2.0.0 cosine 4x4x16x4 = 1024 rays/patch", lambda c, n: run_raystrack(c, n, 1024)),
+        "pyviewfactor": ("pyViewFactor 1.1.0 SA-30", run_pyviewfactor),
+    }
+    chosen = [(tools[t][0], tools[t][1], t) for t in args.tools.split(",")]
     # Numba compiles on first use: one untimed warm-up call per peer.
-    for name, fn in tools[2:]:
-        try:
-            fn("plates-parallel", 1)
-        except Exception as e:
-            print(f"warm-up of {name} FAILED: {type(e).__name__}: {e}")
-    print(f"{'case':<22} {'tool':<44} {'time s':>9} {'|F - exact|':>12} {'max|rowsum-1|':>14}")
-    for case, n in cases:
+    for name, fn, key in chosen:
+        if key in ("raystrack", "pyviewfactor"):
+            try:
+                fn("plates-parallel", 1)
+            except Exception as e:
+                print(f"warm-up of {name} FAILED: {type(e).__name__}: {e}")
+    print(f"{'case':<22} {'tool':<50} {'time s':>9} {'|F - exact|':>12} {'max|rowsum-1|':>14}  time / first")
+    for key in args.cases.split(","):
+        case, n = CASES[key]
         label = case if case != "cube" else f"cube {n}x{n}/face"
         base = None
-        for name, fn in tools:
-            if case == "cube" and n > 8 and name.startswith("radiosity semi"):
-                print(f"{label:<22} {name:<44} {'skipped (O(N^3) pair culling)':>37}")
-                continue
+        for name, fn, _ in chosen:
             try:
                 dt, F, normals, areas = fn(case, n)
                 err, rs = errors(case, F, normals, areas)
                 base = base or dt
-                print(f"{label:<22} {name:<44} {dt:>9.3f} {err:>12.2e} {rs:>14.2e}   x{dt / base:.2f}",
+                print(f"{label:<22} {name:<50} {dt:>9.3f} {err:>12.2e} {rs:>14.2e}  x{dt / base:.2f}",
                       flush=True)
             except Exception as e:  # record exactly what happened
-                print(f"{label:<22} {name:<44} FAILED: {type(e).__name__}: {e}", flush=True)
+                print(f"{label:<22} {name:<50} FAILED: {type(e).__name__}: {e}", flush=True)
 
 
 if __name__ == "__main__":

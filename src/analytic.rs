@@ -210,6 +210,96 @@ pub fn point_to_polygon(x: DVec3, n_x: DVec3, poly: &[DVec3]) -> f64 {
     if n == DVec3::ZERO || poly.len() < 3 {
         return 0.0;
     }
+    point_to_polygon_unit(x, n, poly)
+}
+
+/// [`point_to_polygon`] for a unit normal `n`. When every corner of a polygon of at most
+/// four corners is strictly in front of `x` (the common case inside a room), no clipping
+/// is needed and each corner's distance is computed once.
+#[inline]
+pub fn point_to_polygon_unit(x: DVec3, n: DVec3, poly: &[DVec3]) -> f64 {
+    let m = poly.len();
+    if (3..=4).contains(&m) {
+        let mut r = [DVec3::ZERO; 4];
+        let mut len = [0.0f64; 4];
+        let (mut all_front, mut front, mut reach) = (true, f64::NEG_INFINITY, 0.0f64);
+        for k in 0..m {
+            r[k] = poly[k] - x;
+            let d = n.dot(r[k]);
+            // Corners on the plane need no clipping either (no edge crosses it).
+            all_front &= d >= 0.0;
+            front = front.max(d);
+            len[k] = r[k].length();
+            reach = reach.max(len[k]);
+        }
+        if all_front {
+            if front <= 1e-12 * reach {
+                return 0.0;
+            }
+            let mut sum = 0.0;
+            for k in 0..m {
+                let k1 = if k + 1 == m { 0 } else { k + 1 };
+                let c = r[k].cross(r[k1]);
+                let cl = c.length();
+                if cl > 1e-12 * len[k] * len[k1] {
+                    sum += angle(cl, r[k].dot(r[k1])) * n.dot(c) / cl;
+                }
+            }
+            return sum.abs() / (2.0 * PI);
+        }
+    }
+    point_to_polygon_clipped(x, n, poly)
+}
+
+/// `atan2(s, c)` for `s > 0`: the angle in `(0, π)` whose sine and cosine are proportional
+/// to `s` and `c`, by [`atan_nonneg`] of `s / c` or of `-c / s`.
+#[inline]
+fn angle(s: f64, c: f64) -> f64 {
+    if c >= 0.0 {
+        atan_nonneg(s / c)
+    } else {
+        std::f64::consts::FRAC_PI_2 + atan_nonneg(-c / s)
+    }
+}
+
+/// `atan(x)` for `x >= 0` (including `+inf`), to about one unit in the last place: the
+/// Cephes `atan` (Moshier 1989): reduction to `|x| <= tan(π/8)` by the identities
+/// `atan x = π/2 - atan(1/x)` and `atan x = π/4 + atan((x - 1)/(x + 1))`, then a
+/// degree 4/5 rational approximation in `x²`. About twice as fast as libm's `atan2`, which
+/// dominated the cost of [`point_to_polygon`].
+#[inline]
+pub fn atan_nonneg(x: f64) -> f64 {
+    const T3P8: f64 = 2.414_213_562_373_095; // tan(3π/8)
+    const MOREBITS: f64 = 6.123_233_995_736_766e-17; // π/2 - fl(π/2)
+    let (y0, x, more) = if x > T3P8 {
+        (std::f64::consts::FRAC_PI_2, -1.0 / x, MOREBITS)
+    } else if x <= 0.66 {
+        (0.0, x, 0.0)
+    } else {
+        (
+            std::f64::consts::FRAC_PI_4,
+            (x - 1.0) / (x + 1.0),
+            0.5 * MOREBITS,
+        )
+    };
+    let z = x * x;
+    let p = (((-8.750_608_600_031_904e-1 * z - 1.615_753_718_733_365e1) * z
+        - 7.500_855_792_314_705e1)
+        * z
+        - 1.228_866_684_490_136e2)
+        * z
+        - 6.485_021_904_942_025e1;
+    let q = ((((z + 2.485_846_490_142_306e1) * z + 1.650_270_098_316_988_6e2) * z
+        + 4.328_810_604_912_903e2)
+        * z
+        + 4.853_903_996_359_137e2)
+        * z
+        + 1.945_506_571_482_614e2;
+    y0 + (x * (z * p / q) + x + more)
+}
+
+/// The general case of [`point_to_polygon_unit`]: clips the polygon to `x`'s front side.
+fn point_to_polygon_clipped(x: DVec3, n: DVec3, poly: &[DVec3]) -> f64 {
     // Nothing strictly in front (this includes a polygon lying in x's own plane, whose
     // projected solid angle is 0 from any point approaching x from the front).
     let front = poly
@@ -303,6 +393,37 @@ pub fn gauss_legendre(n: usize) -> Vec<(f64, f64)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn atan_matches_libm() {
+        let mut worst = 0.0f64;
+        for k in 0..200_001 {
+            let x = (k as f64 / 10_000.0 - 10.0).exp(); // 4.5e-5 .. 2.2e4
+            for x in [
+                x,
+                1.0 / x,
+                x * 0.66 / 0.66,
+                0.66,
+                1.0,
+                2.414_213_562_373_095,
+            ] {
+                let (got, want) = (atan_nonneg(x), x.atan());
+                worst = worst.max((got - want).abs() / want);
+            }
+        }
+        assert!(worst < 4.0 * f64::EPSILON, "worst relative error {worst:e}");
+        assert_eq!(atan_nonneg(0.0), 0.0);
+        assert!((atan_nonneg(f64::INFINITY) - std::f64::consts::FRAC_PI_2).abs() < 1e-16);
+        for (s, c) in [
+            (1.0, 1.0),
+            (1.0, -1.0),
+            (1e-9, -1.0),
+            (1.0, 1e-9),
+            (3.0, -4.0),
+        ] {
+            assert!((angle(s, c) - f64::atan2(s, c)).abs() < 4e-16, "{s} {c}");
+        }
+    }
 
     /// Composite Gauss–Legendre nodes on `[lo, hi]`: `m` equal panels of `n` nodes.
     fn panels(lo: f64, hi: f64, m: usize, n: usize) -> Vec<(f64, f64)> {

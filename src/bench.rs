@@ -72,51 +72,56 @@ pub fn record(ctx: &Context, choice: &EstimatorChoice) -> Recorded {
                     .collect(),
             )
         }
-        _ => Recorded::Segments(
-            (0..n)
-                .into_par_iter()
-                .flat_map_iter(|i| {
-                    let mut rays = Vec::new();
-                    let mut rec = |segs: &[(Vec3, Vec3, f32)], out: &mut [bool]| {
-                        rays.extend_from_slice(segs);
-                        out.iter_mut().for_each(|o| *o = true);
-                    };
-                    let mut row = Row::default();
-                    match *choice {
-                        EstimatorChoice::AreaStratified { strata, replicates }
-                        | EstimatorChoice::AreaUniform { strata, replicates }
-                        | EstimatorChoice::AreaSobol { strata, replicates } => {
-                            let pattern = match choice {
-                                EstimatorChoice::AreaUniform { .. } => Pattern::Uniform,
-                                EstimatorChoice::AreaSobol { .. } => Pattern::Sobol,
-                                _ => Pattern::Stratified,
-                            };
-                            AreaMc {
-                                pattern,
-                                strata,
-                                replicates,
+        _ => {
+            let semi = match *choice {
+                EstimatorChoice::SemiAnalytic {
+                    points,
+                    rays,
+                    replicates,
+                    tol,
+                } => Some(SemiAnalytic::new(Nodes::Gauss, points, rays, replicates).with_tol(tol)),
+                _ => None,
+            };
+            Recorded::Segments(
+                (0..n)
+                    .into_par_iter()
+                    .flat_map_iter(|i| {
+                        let mut rays = Vec::new();
+                        let mut rec = |segs: &[(Vec3, Vec3, f32)], out: &mut [bool]| {
+                            rays.extend_from_slice(segs);
+                            out.iter_mut().for_each(|o| *o = true);
+                        };
+                        let mut row = Row::default();
+                        match *choice {
+                            EstimatorChoice::AreaStratified { strata, replicates }
+                            | EstimatorChoice::AreaUniform { strata, replicates }
+                            | EstimatorChoice::AreaSobol { strata, replicates } => {
+                                let pattern = match choice {
+                                    EstimatorChoice::AreaUniform { .. } => Pattern::Uniform,
+                                    EstimatorChoice::AreaSobol { .. } => Pattern::Sobol,
+                                    _ => Pattern::Stratified,
+                                };
+                                AreaMc {
+                                    pattern,
+                                    strata,
+                                    replicates,
+                                }
+                                .row_with(ctx, i, &mut row, &mut rec)
                             }
-                            .row_with(ctx, i, &mut row, &mut rec)
+                            EstimatorChoice::SemiAnalytic { .. } => semi
+                                .as_ref()
+                                .expect("built above")
+                                .row_with(ctx, i, &mut row, &mut rec),
+                            // Measured by the closest-hit branch above, or not ray-driven per
+                            // pair (the hemicube casts one ray per cell): nothing to record.
+                            EstimatorChoice::Hemisphere { .. }
+                            | EstimatorChoice::Hemicube { .. } => {}
                         }
-                        EstimatorChoice::SemiAnalytic {
-                            points,
-                            rays: vis_rays,
-                            replicates,
-                        } => SemiAnalytic {
-                            nodes: Nodes::Gauss,
-                            points,
-                            vis_rays,
-                            replicates,
-                        }
-                        .row_with(ctx, i, &mut row, &mut rec),
-                        // Measured by the closest-hit branch above, or not ray-driven per
-                        // pair (the hemicube casts one ray per cell): nothing to record.
-                        EstimatorChoice::Hemisphere { .. } | EstimatorChoice::Hemicube { .. } => {}
-                    }
-                    rays
-                })
-                .collect(),
-        ),
+                        rays
+                    })
+                    .collect(),
+            )
+        }
     }
 }
 
@@ -543,6 +548,7 @@ fn estimators() -> [EstimatorChoice; 3] {
             points: 3,
             rays: 2,
             replicates: 4,
+            tol: SemiAnalytic::DEFAULT_TOL,
         },
     ]
 }
@@ -736,6 +742,7 @@ mod tests {
                 points: 2,
                 rays: 2,
                 replicates: 2,
+                tol: SemiAnalytic::DEFAULT_TOL,
             },
         ] {
             let ff = formfactor::compute(&ctx, choice.build().as_ref(), &|_| {});

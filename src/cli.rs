@@ -185,6 +185,10 @@ struct FactorArgs {
     /// Visibility strata per side for each emitter point (semi estimator): rays² rays.
     #[arg(long, default_value_t = 2)]
     rays: usize,
+    /// Relative tolerance of the semi estimator's deterministic integral over pairs that
+    /// nothing can block (no rays there; the error estimate is the reported error).
+    #[arg(long, default_value_t = 1e-6)]
+    tol: f64,
     /// Independent replicates, for the standard errors (at least 2).
     #[arg(long, default_value_t = 4)]
     replicates: usize,
@@ -214,11 +218,15 @@ impl FactorArgs {
         if self.rays == 0 {
             bail!("--rays must be at least 1");
         }
+        if !(self.tol >= 1e-14 && self.tol < 1.0) {
+            bail!("--tol must be in [1e-14, 1), got {}", self.tol);
+        }
         Ok(match self.estimator {
             EstimatorArg::Semi => EstimatorChoice::SemiAnalytic {
                 points: self.samples,
                 rays: self.rays,
                 replicates: self.replicates,
+                tol: self.tol,
             },
             EstimatorArg::Stratified => EstimatorChoice::AreaStratified {
                 strata: self.samples,

@@ -210,6 +210,12 @@ impl FormFactors {
         self.f.nnz_index(i, j).map(|k| self.se[k.0]).unwrap_or(0.0)
     }
 
+    /// The stored entries of row `i`: `(j, F_ij, standard error)`.
+    pub fn row(&self, i: usize) -> impl Iterator<Item = (usize, f64, f64)> + '_ {
+        let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));
+        (lo..hi).map(move |k| (self.f.indices()[k], self.f.data()[k], self.se[k]))
+    }
+
     /// Sum of row `i`.
     pub fn row_sum(&self, i: usize) -> f64 {
         self.f

@@ -65,6 +65,8 @@ pub enum EstimatorChoice {
         rays: usize,
         /// Replicates.
         replicates: usize,
+        /// Relative tolerance of the deterministic integral of unoccluded pairs.
+        tol: f64,
     },
 }
 
@@ -95,12 +97,8 @@ impl EstimatorChoice {
                 points,
                 rays,
                 replicates,
-            } => Box::new(SemiAnalytic {
-                nodes: Nodes::Gauss,
-                points,
-                vis_rays: rays,
-                replicates,
-            }),
+                tol,
+            } => Box::new(SemiAnalytic::new(Nodes::Gauss, points, rays, replicates).with_tol(tol)),
         }
     }
 }
@@ -147,6 +145,7 @@ impl Default for BakeConfig {
                 points: 3,
                 rays: 2,
                 replicates: 4,
+                tol: SemiAnalytic::DEFAULT_TOL,
             },
             seed: 1,
             method: Method::GaussSeidel,

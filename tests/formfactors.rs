@@ -8,9 +8,9 @@ use radiosity::scene::Scene;
 use radiosity::visibility::Visibility;
 
 /// Howell C-14, unit squares with a common edge.
-const F_PERPENDICULAR: f64 = 0.2000438;
+const F_PERPENDICULAR: f64 = 0.200_043_776_075_403_16;
 /// Howell C-11, opposed unit squares at distance 1.
-const F_PARALLEL: f64 = 0.1998249;
+const F_PARALLEL: f64 = 0.199_824_895_698_387_5;
 
 fn factors(
     scene: &str,
@@ -85,6 +85,70 @@ fn closed_cube_rows_sum_to_one_and_reciprocity_holds() {
     }
     assert!(d.reciprocity <= 1e-3, "reciprocity error {}", d.reciprocity);
     assert_eq!(d.out_of_range, 0);
+}
+
+/// The semi-analytic estimator on the closed cube with 8 x 8 patches per face (384
+/// patches, every pair unoccluded, so no rays): the face-to-face factors, aggregated from
+/// the patch matrix by area, match the closed forms (C-14 for adjacent faces, C-11 for
+/// opposite ones) within 1e-9, and each within its own error bar (the area-weighted sum
+/// of the entries' quadrature error estimates), which must itself be small.
+#[test]
+fn cube_face_to_face_factors_to_1e9() {
+    let est = EstimatorChoice::SemiAnalytic {
+        points: 3,
+        rays: 2,
+        replicates: 2,
+        tol: 1e-9,
+    };
+    let (patches, ff) = factors("cube", Resolution::MaxEdge(0.125), &est, 1);
+    assert_eq!(patches.len(), 384);
+    assert_eq!(ff.rays, 0, "a convex room needs no visibility rays");
+    let face = |n: glam::Vec3| -> usize {
+        let a = n.abs();
+        let k = if a.x >= a.y && a.x >= a.z {
+            0
+        } else if a.y >= a.z {
+            1
+        } else {
+            2
+        };
+        2 * k + usize::from(n[k] > 0.0)
+    };
+    let mut sum = [[0.0f64; 6]; 6];
+    let mut bar = [[0.0f64; 6]; 6];
+    let mut area = [0.0f64; 6];
+    for i in 0..patches.len() {
+        let fi = face(patches.normal[i]);
+        area[fi] += patches.area[i];
+        for (j, f, se) in ff.row(i) {
+            let fj = face(patches.normal[j]);
+            sum[fi][fj] += patches.area[i] * f;
+            bar[fi][fj] += patches.area[i] * se;
+        }
+    }
+    let mut worst = 0.0f64;
+    for a in 0..6 {
+        for b in 0..6 {
+            if a == b {
+                continue;
+            }
+            let exact = if a / 2 == b / 2 {
+                F_PARALLEL
+            } else {
+                F_PERPENDICULAR
+            };
+            let (got, err) = (sum[a][b] / area[a], bar[a][b] / area[a]);
+            let off = (got - exact).abs();
+            worst = worst.max(off);
+            assert!(off <= 1e-9, "faces {a}->{b}: {got} vs {exact}");
+            assert!(
+                off <= err.max(1e-14),
+                "faces {a}->{b}: error {off:e} beyond its bar {err:e}"
+            );
+            assert!(err <= 1e-8, "faces {a}->{b}: bar {err:e} too wide");
+        }
+    }
+    eprintln!("cube 8x8 face-to-face: worst error {worst:.2e}");
 }
 
 /// The area estimator with few samples on adjacent patches is noisy, and says so: its row

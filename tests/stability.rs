@@ -77,6 +77,7 @@ fn cube(rho: f64) -> (PatchSet, FormFactors) {
             points: 2,
             rays: 1,
             replicates: 2,
+            tol: radiosity::formfactor::SemiAnalytic::DEFAULT_TOL,
         },
     )
 }
@@ -273,6 +274,7 @@ fn shared_edge_is_finite_and_semi_analytic_stays_exact() {
             points: 3,
             rays: 2,
             replicates: 4,
+            tol: radiosity::formfactor::SemiAnalytic::DEFAULT_TOL,
         },
     ] {
         let (_, ff) = factors(&scene, Resolution::MaxEdge(10.0), &est);
@@ -354,6 +356,7 @@ f 17 21 20 22
             points: 2,
             rays: 1,
             replicates: 2,
+            tol: radiosity::formfactor::SemiAnalytic::DEFAULT_TOL,
         },
     ] {
         let (patches, ff) = factors(&scene, Resolution::MaxEdge(0.5), &est);
@@ -412,6 +415,7 @@ f 9 10 11 12
             points: 2,
             rays: 2,
             replicates: 2,
+            tol: radiosity::formfactor::SemiAnalytic::DEFAULT_TOL,
         },
     ] {
         let (patches, ff) = factors(&scene, Resolution::MaxEdge(0.125), &est);
@@ -460,6 +464,7 @@ f 8 7 6 5
         points: 6,
         rays: 1,
         replicates: 4,
+        tol: radiosity::formfactor::SemiAnalytic::DEFAULT_TOL,
     };
     let (tff, _, _) = pipeline::form_factors(&patches, &truth_est, 1, &Quiet).unwrap();
     let truth = tff.get(recv, light);

@@ -85,6 +85,7 @@ fn semi_analytic_matches_every_unoccluded_configuration() {
             points: 48,
             rays: 1,
             replicates: 2,
+            tol: radiosity::formfactor::SemiAnalytic::DEFAULT_TOL,
         };
         let (ff, _, _) = pipeline::form_factors(&p.patches, &est, 1, &Quiet).expect("ff");
         let r = Run {
@@ -129,6 +130,7 @@ fn repairs_stay_within_error_bars_on_the_noisy_closed_cube() {
         points: 12,
         rays: 1,
         replicates: 2,
+        tol: radiosity::formfactor::SemiAnalytic::DEFAULT_TOL,
     };
     let (exact, _, _) = pipeline::form_factors(&patches, &reference, 1, &Quiet).expect("ff");
     // The area estimator is left out: on adjacent cube patches its heavy tail makes some

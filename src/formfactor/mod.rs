@@ -13,6 +13,7 @@
 //! matrix reciprocal by construction.
 
 pub mod area;
+pub mod exact;
 pub mod hemicube;
 pub mod hemisphere;
 pub mod semi;

@@ -3,91 +3,125 @@
 //!
 //! For patches i and j,
 //!
-//! `F_ij = 1/A_i ∫_{A_i} F(x → P_j) v(x) dA_x`,
+//! `A_i F_ij = ∫_{A_i} F(x → P_j) v(x) dA_x`,
 //!
 //! where `F(x → P_j)` is the exact unoccluded differential-area-to-polygon factor
 //! ([`crate::analytic::point_to_polygon`], Lambert's contour integral; Baum, Rushmeier and
 //! Winget 1989) and `v(x)` the kernel-weighted visible fraction of `P_j` from `x`,
-//! `v(x) = ∫ G V dA_y / ∫ G dA_y` with `G = cos θ_x cos θ_y / (π r²)`. Only `v` is
-//! sampled: it is estimated at each node `x` by rays to `vis_rays²` jittered points `y` on
-//! `P_j` as `Σ G V / Σ G` (a ratio estimator: consistent, with an `O(1/n)` bias where the
-//! pair is partly occluded, and exact, 1, where nothing blocks). Receivers are one-sided:
-//! nodes behind `P_j`'s plane contribute 0.
+//! `v(x) = ∫ G V dA_y / ∫ G dA_y` with `G = cos θ_x cos θ_y / (π r²)`. Receivers are
+//! one-sided: nodes behind `P_j`'s plane contribute 0.
 //!
-//! The integral over `x` uses either
-//! - [`Nodes::Gauss`] (the default of `radiosity bake`): the tensor Gauss–Legendre rule of
-//!   order `points` on the patch's
-//!   parameter square (bilinear map for quads, collapsed map for triangles). The point
-//!   factor is analytic inside the patch for unoccluded pairs, with weak singularities only
-//!   where the patch touches `P_j` (a shared edge), so the rule converges quickly: for the
-//!   two unit-square plates (Howell C-11, and C-14 with its shared edge) 4 nodes per side
-//!   give 1e-5 relative, 8 give 1e-10 and 12 reach rounding error. The nodes are the same in every replicate and for every receiver j, so
-//!   in a closed scene the unoccluded part of each row sums to 1 exactly (the point
-//!   factors of a point inside a closed surface sum to 1). Replicates differ only in their
-//!   visibility rays; the reported error adds, in quadrature, the replicate standard error
-//!   of the visibility and the difference between the order-`points` and order
-//!   `points - 1` rules (a conservative estimate of the deterministic quadrature error).
-//! - [`Nodes::Stratified`]: one jittered point in each of `points²` strata of the patch
-//!   (uniform by area), independently in each replicate; the standard error then covers
-//!   the whole estimate.
+//! Each unordered pair is computed once ([`Estimator::upper_only`]): the integral is the
+//! same from either side, `A_i F_ij = A_j F_ji`, so it is taken over the smaller patch and
+//! both entries follow, reciprocal by construction.
 //!
-//! The standard error is the standard deviation of the replicate means over `sqrt(R)`.
+//! **Provably unoccluded pairs are integrated deterministically, to a tolerance, with no
+//! rays** ([`super::exact`]: Gauss–Legendre of an a-priori order for far pairs,
+//! tanh–sinh where the patches touch, both checked a posteriori); `v = 1` exactly there,
+//! and the reported error is the quadrature's error estimate. With [`Nodes::Stratified`]
+//! those pairs use random stratified nodes instead (for studies of the estimator).
 //!
-//! **Provably unoccluded pairs cast no rays.** A patch k can block a segment from
-//! `x ∈ P_i` to `y ∈ P_j` only if it meets the convex hull of the two patches. It cannot
-//! when all its corners lie on or behind the plane of i or of j (the segment's interior is
-//! strictly in front of both), nor when both patches lie wholly on the front side of k's
-//! plane (segments between them cannot cross it: the walls of a convex room), nor when its
-//! bounding box misses the bounding box of the two
-//! patches' corners. When every other patch is excluded by these tests, `v = 1` exactly and
-//! the entry is deterministic (standard error 0). The test costs `O(N)` per pair, small
-//! next to the rays it saves or casts; it is conservative (a box overlap does not prove an
-//! occlusion, so some unoccluded pairs still cast rays, and give `v = 1` from the rays).
+//! A patch k can block a segment from `x ∈ P_i` to `y ∈ P_j` only if it meets the convex
+//! hull of the two patches. It cannot when it is a *hull face* (every corner of the scene
+//! lies on or in front of its plane: segments between scene points never cross that plane,
+//! as for the walls of a convex room; found once per scene), when all its corners lie on or
+//! behind the plane of i or of j, when both patches lie wholly in front of its plane, or
+//! when its bounding box misses the box of the two patches. When every other patch is
+//! excluded, the pair is unoccluded. The test is conservative (a box overlap does not prove
+//! an occlusion), and costs nothing per pair in a convex room, where every patch is a hull
+//! face.
+//!
+//! **Other pairs are sampled.** `points²` jittered nodes per replicate on the emitter (one
+//! per stratum, uniform by area) and, at each node, `v` estimated by rays to `vis_rays²`
+//! jittered points on the receiver as `Σ G V / Σ G` (a ratio estimator: consistent, with an
+//! `O(1/n)` bias where the pair is partly occluded). The standard error is the standard
+//! deviation of the replicate means over `sqrt(R)`. Each stream is keyed on
+//! `(seed, i, j, replicate)`, so the result does not depend on the thread count.
 //!
 //! Pairs with one patch wholly behind the other's plane are culled without rays, as in
-//! [`super::area`]. Each stream is keyed on `(seed, i, j, replicate)`, so the result does
-//! not depend on the thread count.
+//! [`super::area`].
+
+use std::sync::{Arc, Mutex};
 
 use glam::{DVec3, Vec3};
 
 use super::area::kernel;
+use super::exact::{self, Piece, Receiver};
 use super::{Context, Entry, Estimator, Row};
-use crate::analytic::{gauss_legendre, point_to_polygon};
 use crate::mesh::PatchSet;
 use crate::sampling::{jittered, Pcg32};
 use crate::visibility::SegmentRay;
 
-/// How the nodes `x` on the emitter are placed.
+/// How the nodes `x` on the emitter are placed for pairs that nothing can block.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Nodes {
-    /// Tensor Gauss–Legendre nodes, the same in every replicate.
+    /// Deterministic quadrature to the relative tolerance [`SemiAnalytic::tol`].
     Gauss,
     /// A jittered point per stratum, drawn anew in every replicate.
     Stratified,
 }
 
+/// Per-scene data for the occlusion test, computed once per patch set.
+#[derive(Debug)]
+struct Prepared {
+    /// Fingerprint of the patch set it was computed for.
+    key: u64,
+    /// Bounding box of every patch.
+    boxes: Vec<(Vec3, Vec3)>,
+    /// Patches that are not hull faces: the only possible blockers.
+    blockers: Vec<u32>,
+}
+
 /// Semi-analytic estimator: exact point-to-polygon factors times ray-estimated visibility.
-#[derive(Clone, Debug)]
+#[derive(Debug)]
 pub struct SemiAnalytic {
-    /// Node placement on the emitter.
+    /// Node placement on the emitter for pairs nothing can block.
     pub nodes: Nodes,
-    /// Nodes per side on the emitter: `points²` nodes per replicate.
+    /// Nodes per side on the emitter for sampled pairs: `points²` nodes per replicate.
     pub points: usize,
     /// Visibility strata per side: `vis_rays²` rays per node, for pairs not provably
     /// unoccluded.
     pub vis_rays: usize,
-    /// Independent replicates (>= 2) for the standard error.
+    /// Independent replicates (>= 2) for the standard error of sampled pairs.
     pub replicates: usize,
+    /// Relative tolerance of the deterministic integral of unoccluded pairs.
+    pub tol: f64,
+    cache: Mutex<Option<Arc<Prepared>>>,
+}
+
+impl Clone for SemiAnalytic {
+    fn clone(&self) -> Self {
+        SemiAnalytic::new(self.nodes, self.points, self.vis_rays, self.replicates)
+            .with_tol(self.tol)
+    }
 }
 
 impl Default for SemiAnalytic {
     fn default() -> Self {
+        SemiAnalytic::new(Nodes::Gauss, 4, 4, 4)
+    }
+}
+
+impl SemiAnalytic {
+    /// Default relative tolerance of unoccluded pairs.
+    pub const DEFAULT_TOL: f64 = 1e-6;
+
+    /// An estimator with [`SemiAnalytic::DEFAULT_TOL`].
+    pub fn new(nodes: Nodes, points: usize, vis_rays: usize, replicates: usize) -> Self {
         SemiAnalytic {
-            nodes: Nodes::Gauss,
-            points: 4,
-            vis_rays: 4,
-            replicates: 4,
+            nodes,
+            points,
+            vis_rays,
+            replicates,
+            tol: Self::DEFAULT_TOL,
+            cache: Mutex::new(None),
         }
+    }
+
+    /// The same with relative tolerance `tol` for unoccluded pairs.
+    pub fn with_tol(mut self, tol: f64) -> Self {
+        self.tol = tol;
+        self
     }
 }
 
@@ -119,69 +153,68 @@ fn bounds(p: &PatchSet, i: usize) -> (Vec3, Vec3) {
         })
 }
 
-/// Gauss–Legendre nodes on patch `i`: `(x, weight)` with weights summing to the area.
-fn gauss_nodes(p: &PatchSet, i: usize, rule: &[(f64, f64)], out: &mut Vec<(DVec3, f64)>) {
-    out.clear();
-    let (c, k) = corners(p, i);
-    for &(u, wu) in rule {
-        for &(v, wv) in rule {
-            let (x, jac) = if k == 3 {
-                // Collapsed map: x = c0 + u (c1 - c0 + v (c2 - c1)), |J| = u |e1 x e2|.
-                let (e1, e2) = (c[1] - c[0], c[2] - c[1]);
-                (c[0] + (e1 + e2 * v) * u, u * e1.cross(e2).length())
-            } else {
-                // Bilinear map of the quad.
-                let x = c[0] * ((1.0 - u) * (1.0 - v))
-                    + c[1] * (u * (1.0 - v))
-                    + c[2] * (u * v)
-                    + c[3] * ((1.0 - u) * v);
-                let du = (c[1] - c[0]) * (1.0 - v) + (c[2] - c[3]) * v;
-                let dv = (c[3] - c[0]) * (1.0 - u) + (c[2] - c[1]) * u;
-                (x, du.cross(dv).length())
-            };
-            out.push((x, wu * wv * jac));
+/// FNV-1a over the patch count and centroids: tells one patch set from another.
+fn fingerprint(p: &PatchSet) -> u64 {
+    let mut h = 0xcbf2_9ce4_8422_2325u64 ^ p.len() as u64;
+    for c in &p.centroid {
+        for x in c.to_array() {
+            h = (h ^ x.to_bits() as u64).wrapping_mul(0x100_0000_01b3);
         }
     }
+    h
 }
 
-/// Quadrature nodes: (point, weight).
-type NodeList = Vec<(DVec3, f64)>;
-
-/// The part of a convex polygon on the front side of the plane through `c` with normal
-/// `n` (Sutherland–Hodgman against one plane).
-fn clip_front(poly: &[DVec3], n: DVec3, c: DVec3) -> Vec<DVec3> {
-    let mut out = Vec::with_capacity(poly.len() + 1);
-    for k in 0..poly.len() {
-        let (a, b) = (poly[k], poly[(k + 1) % poly.len()]);
-        let (da, db) = (n.dot(a - c), n.dot(b - c));
-        if da >= 0.0 {
-            out.push(a);
-        }
-        if (da >= 0.0) != (db >= 0.0) {
-            out.push(a + (b - a) * (da / (da - db)));
-        }
-    }
-    out
-}
-
-/// Gauss–Legendre nodes on a convex polygon: the collapsed tensor rule on each triangle of
-/// a fan from the first corner; weights sum to the polygon's area.
-fn gauss_nodes_polygon(poly: &[DVec3], rule: &[(f64, f64)], out: &mut Vec<(DVec3, f64)>) {
-    out.clear();
-    for k in 1..poly.len().saturating_sub(1) {
-        let (c0, e1, e2) = (poly[0], poly[k] - poly[0], poly[k + 1] - poly[k]);
-        let area2 = e1.cross(e2).length();
-        for &(u, wu) in rule {
-            for &(v, wv) in rule {
-                out.push((c0 + (e1 + e2 * v) * u, wu * wv * u * area2));
-            }
+impl Prepared {
+    fn new(p: &PatchSet, key: u64) -> Prepared {
+        let tol = 1e-6 * p.diagonal as f32;
+        let boxes: Vec<(Vec3, Vec3)> = (0..p.len()).map(|k| bounds(p, k)).collect();
+        let (lo, hi) = boxes
+            .iter()
+            .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(a, b), &(l, h)| {
+                (a.min(l), b.max(h))
+            });
+        let corners: Vec<Vec3> = (0..p.len())
+            .flat_map(|k| {
+                let (c, n) = p.corner_points(k);
+                c.into_iter().take(n)
+            })
+            .collect();
+        let blockers = (0..p.len())
+            .filter(|&k| {
+                let (n, c) = (p.normal[k], p.centroid[k]);
+                // Lower bound of min n·(q - c) over the scene's box: proves most walls at
+                // once; otherwise scan the corners, stopping at the first one behind.
+                let bound = (n * lo).min(n * hi).element_sum() - n.dot(c);
+                let hull = bound >= -tol || corners.iter().all(|&q| n.dot(q - c) >= -tol);
+                !hull
+            })
+            .map(|k| k as u32)
+            .collect();
+        Prepared {
+            key,
+            boxes,
+            blockers,
         }
     }
 }
 
 impl SemiAnalytic {
+    /// The per-scene data for `p`, computed on first use.
+    fn prepared(&self, p: &PatchSet) -> Arc<Prepared> {
+        let key = fingerprint(p);
+        let mut cache = self.cache.lock().unwrap_or_else(|e| e.into_inner());
+        match &*cache {
+            Some(prep) if prep.key == key => prep.clone(),
+            _ => {
+                let prep = Arc::new(Prepared::new(p, key));
+                *cache = Some(prep.clone());
+                prep
+            }
+        }
+    }
+
     /// True when no other patch can block any segment between patches `i` and `j` (see
-    /// the module docs). `others` are the patches with a corner strictly in front of i.
+    /// the module docs). `others` are the blockers with a corner strictly in front of i.
     fn unoccluded(
         &self,
         p: &PatchSet,
@@ -205,10 +238,27 @@ impl SemiAnalytic {
                 return true;
             }
             // Both patches wholly on the front side of k's plane: segments between them
-            // cannot cross that plane, so k cannot block (every wall of a convex room).
+            // cannot cross that plane, so k cannot block.
             plane_range(p, k, i).0 >= -tol && plane_range(p, k, j).0 >= -tol
         })
     }
+}
+
+/// The part of a convex polygon on the front side of the plane through `c` with normal
+/// `n` (Sutherland–Hodgman against one plane).
+fn clip_front(poly: &[DVec3], n: DVec3, c: DVec3) -> Vec<DVec3> {
+    let mut out = Vec::with_capacity(poly.len() + 1);
+    for k in 0..poly.len() {
+        let (a, b) = (poly[k], poly[(k + 1) % poly.len()]);
+        let (da, db) = (n.dot(a - c), n.dot(b - c));
+        if da >= 0.0 {
+            out.push(a);
+        }
+        if (da >= 0.0) != (db >= 0.0) {
+            out.push(a + (b - a) * (da / (da - db)));
+        }
+    }
+    out
 }
 
 impl Estimator for SemiAnalytic {
@@ -219,9 +269,14 @@ impl Estimator for SemiAnalytic {
         };
         let (p, v) = (self.points, self.vis_rays);
         format!(
-            "{kind}(points={p}x{p}x{}, vis={v}x{v})",
+            "{kind}(tol={:.0e}, points={p}x{p}x{}, vis={v}x{v})",
+            self.tol,
             self.replicates.max(2)
         )
+    }
+
+    fn upper_only(&self) -> bool {
+        true
     }
 
     fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
@@ -232,9 +287,21 @@ impl Estimator for SemiAnalytic {
     }
 }
 
+/// Scratch buffers of the sampled pairs, reused within a row.
+#[derive(Default)]
+struct Scratch {
+    strata: Vec<(f64, f64)>,
+    ys: Vec<(f64, f64)>,
+    segs: Vec<SegmentRay>,
+    gs: Vec<f64>,
+    seen: Vec<bool>,
+    means: Vec<f64>,
+}
+
 impl SemiAnalytic {
-    /// Row `i` with `visible(segments, out)` answering visibility for a batch of segment
-    /// rays ([`crate::visibility::Visibility::segment_ray`], one batch per node); the rays
+    /// Row `i`, entries `j > i` ([`Estimator::upper_only`]), with `visible(segments, out)`
+    /// answering visibility for a batch of segment rays
+    /// ([`crate::visibility::Visibility::segment_ray`], one batch per node); the rays
     /// asked for do not depend on the answers, so a recorder sees the exact ray set.
     pub fn row_with(
         &self,
@@ -244,178 +311,155 @@ impl SemiAnalytic {
         visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
     ) {
         let p = ctx.patches;
-        let reps = self.replicates.max(2);
-        let m = self.points.max(1);
+        let prep = self.prepared(p);
         let tol = 1e-6 * p.diagonal as f32;
-        let n_i = p.normal[i];
-        let n_x = n_i.as_dvec3();
-        // Patches that could block anything leaving i: a corner strictly in front of i.
-        let boxes: Vec<(Vec3, Vec3)> = (0..p.len()).map(|k| bounds(p, k)).collect();
-        let others: Vec<u32> = (0..p.len())
-            .filter(|&k| k != i && plane_range(p, i, k).1 > tol)
-            .map(|k| k as u32)
+        // Possible blockers of anything leaving i: not hull faces, a corner in front of i.
+        let others: Vec<u32> = prep
+            .blockers
+            .iter()
+            .copied()
+            .filter(|&k| k as usize != i && plane_range(p, i, k as usize).1 > tol)
             .collect();
-        let rule = gauss_legendre(m);
-        let mut nodes = Vec::with_capacity(m * m);
-        // Gauss mode: the rule of order m - 1 on the same patch estimates the quadrature
-        // error of the order-m rule (|Q_m - Q_{m-1}|, conservative for a converging rule).
-        let mut nodes_lo = Vec::new();
-        let rule_lo = gauss_legendre(m.saturating_sub(1).max(1));
-        if self.nodes == Nodes::Gauss {
-            gauss_nodes(p, i, &rule, &mut nodes);
-            if m >= 2 {
-                gauss_nodes(p, i, &rule_lo, &mut nodes_lo);
-            }
-        }
-        let (mut clip_nodes, mut clip_nodes_lo) = (Vec::new(), Vec::new());
-        let mut strat_nodes = Vec::with_capacity(m * m);
+        let mut scratch = Scratch::default();
         let area_i = p.area[i];
-        let mut strata = Vec::new();
-        let mut ys = Vec::new();
-        let (mut segs, mut gs, mut seen) = (Vec::new(), Vec::new(), Vec::new());
-        let mut means = vec![0.0f64; reps];
-        for j in 0..p.len() {
-            if j == i || plane_range(p, i, j).1 <= tol || plane_range(p, j, i).1 <= tol {
+        for j in i + 1..p.len() {
+            if plane_range(p, i, j).1 <= tol || plane_range(p, j, i).1 <= tol {
                 continue;
             }
-            let (cj, kj) = corners(p, j);
-            let poly = &cj[..kj];
-            let (n_j, c_j) = (p.normal[j], p.centroid[j].as_dvec3());
-            let n_y = n_j.as_dvec3();
-            let free = self.unoccluded(p, i, j, &others, &boxes);
-            // Gauss nodes only where nothing can block: there the integrand is smooth and
-            // the rule exact to rounding. Where something may block, visibility jumps across
-            // the emitter and fixed nodes can all miss a visible sliver, so fresh stratified
-            // nodes are drawn in each replicate and the error bar is a true standard error.
-            let gauss = self.nodes == Nodes::Gauss && free;
-            // Gauss mode: when patch i straddles the plane of j, only its part in front of
-            // that plane sees j; the integrand drops to 0 across the plane, which a tensor
-            // rule over the whole patch resolves badly. Integrate over the clipped part.
-            let straddles = gauss && plane_range(p, j, i).0 < -tol;
-            if straddles {
-                let (ci, ki) = corners(p, i);
-                let front = clip_front(&ci[..ki], n_y, c_j);
-                gauss_nodes_polygon(&front, &rule, &mut clip_nodes);
-                if m >= 2 {
-                    gauss_nodes_polygon(&front, &rule_lo, &mut clip_nodes_lo);
-                }
-            }
-            let (nodes_j, nodes_lo_j): (&NodeList, &NodeList) = if straddles {
-                (&clip_nodes, &clip_nodes_lo)
+            let free = self.unoccluded(p, i, j, &others, &prep.boxes);
+            // The integral A_i F_ij = A_j F_ji, over the smaller patch.
+            let (e, r) = if p.area[j] < p.area[i] {
+                (j, i)
             } else {
-                (&nodes, &nodes_lo)
+                (i, j)
             };
-            let on_j = p.sampler(j);
-            // Exact unoccluded point factors at fixed nodes are the same in every replicate.
-            let fixed: Vec<f64> = if gauss {
-                nodes_j
-                    .iter()
-                    .map(|&(x, _)| point_factor(x, n_x, poly, n_y, c_j))
-                    .collect()
+            let (value, err) = if free && self.nodes == Nodes::Gauss {
+                let got = self.exact_pair(p, e, r);
+                (got.value, got.err)
             } else {
-                Vec::new()
+                self.sampled_pair(ctx, (i, j), (e, r), free, row, visible, &mut scratch)
             };
-            for (r, mean) in means.iter_mut().enumerate() {
-                let mut rng = Pcg32::keyed(ctx.seed, i as u64, j as u64, r as u64);
-                if !gauss {
-                    jittered(&mut rng, m, &mut strata);
-                    let w = p.area[i] / (m * m) as f64;
-                    strat_nodes.clear();
-                    strat_nodes.extend(
-                        strata
-                            .iter()
-                            .map(|&(u, v)| (p.sample_point(i, u, v).as_dvec3(), w)),
-                    );
-                }
-                let node_set = if gauss { nodes_j } else { &strat_nodes };
-                let mut sum = 0.0;
-                for (k, &(x, w)) in node_set.iter().enumerate() {
-                    let f = if gauss {
-                        fixed[k]
-                    } else {
-                        point_factor(x, n_x, poly, n_y, c_j)
-                    };
-                    if f <= 0.0 {
-                        continue;
-                    }
-                    let v = if free {
-                        1.0
-                    } else {
-                        jittered(&mut rng, self.vis_rays.max(1), &mut ys);
-                        let xf = x.as_vec3();
-                        segs.clear();
-                        gs.clear();
-                        for &(u, v) in &ys {
-                            let y = on_j.point(u, v);
-                            if let Some(g) = kernel(xf, n_i, y, n_j) {
-                                segs.push(ctx.vis.segment_ray(xf, n_i, y, n_j));
-                                gs.push(g);
-                            }
-                        }
-                        row.rays += segs.len() as u64;
-                        seen.clear();
-                        seen.resize(segs.len(), false);
-                        visible(&segs, &mut seen);
-                        let (mut g_all, mut g_vis) = (0.0, 0.0);
-                        for (&g, &f) in gs.iter().zip(&seen) {
-                            g_all += g;
-                            if f {
-                                g_vis += g;
-                            }
-                        }
-                        // No sample in view: the visible sliver of P_j is below the
-                        // sampling resolution and counts as hidden.
-                        if g_all > 0.0 {
-                            g_vis / g_all
-                        } else {
-                            0.0
-                        }
-                    };
-                    sum += w * f * v;
-                }
-                *mean = sum / area_i;
-            }
-            let avg = means.iter().sum::<f64>() / reps as f64;
-            if avg > 0.0 {
-                let var = means.iter().map(|v| (v - avg).powi(2)).sum::<f64>() / (reps - 1) as f64;
-                let mut se2 = var / reps as f64;
-                if gauss && !nodes_lo_j.is_empty() {
-                    // Quadrature error of the unoccluded factor, scaled by the visible fraction.
-                    let q_hi: f64 = nodes_j
-                        .iter()
-                        .zip(&fixed)
-                        .map(|(n, f)| n.1 * f)
-                        .sum::<f64>()
-                        / area_i;
-                    let q_lo: f64 = nodes_lo_j
-                        .iter()
-                        .map(|&(x, w)| w * point_factor(x, n_x, poly, n_y, c_j))
-                        .sum::<f64>()
-                        / area_i;
-                    let visible = if q_hi > 0.0 {
-                        (avg / q_hi).min(1.0)
-                    } else {
-                        1.0
-                    };
-                    se2 += ((q_hi - q_lo) * visible).powi(2);
-                }
+            if value > 0.0 {
                 row.entries.push(Entry {
                     j: j as u32,
-                    f: avg,
-                    se: se2.sqrt(),
+                    f: value / area_i,
+                    se: err / area_i,
                 });
             }
         }
     }
-}
 
-/// `F(x → P_j)` for a one-sided receiver: 0 when `x` is not in front of `P_j`'s plane.
-#[inline]
-fn point_factor(x: DVec3, n_x: DVec3, poly: &[DVec3], n_y: DVec3, c_y: DVec3) -> f64 {
-    if n_y.dot(x - c_y) <= 0.0 {
-        return 0.0;
+    /// `∫_{A_e} F(x → P_r) dA_x` for an unoccluded pair, to the tolerance.
+    fn exact_pair(&self, p: &PatchSet, e: usize, r: usize) -> exact::Integral {
+        let tol = 1e-6 * p.diagonal as f32;
+        let (ce, ke) = corners(p, e);
+        let (cr, kr) = corners(p, r);
+        let n_e = p.normal[e].as_dvec3().normalize();
+        let recv = Receiver {
+            poly: &cr[..kr],
+            normal: p.normal[r].as_dvec3(),
+            centroid: p.centroid[r].as_dvec3(),
+        };
+        // Below this the integral is not worth chasing: rounding of the f32 geometry.
+        let floor = 1e-15 * p.area[e] * p.area[r] / (p.diagonal * p.diagonal);
+        let mut pieces: Vec<Piece> = Vec::with_capacity(4);
+        if plane_range(p, r, e).0 < -tol {
+            // The emitter straddles the receiver's plane: only its part in front sees the
+            // receiver, and the integrand drops to 0 across the plane, which a rule over
+            // the whole patch resolves badly. Integrate over the clipped part.
+            let front = clip_front(&ce[..ke], recv.normal, recv.centroid);
+            for k in 1..front.len().saturating_sub(1) {
+                pieces.push(Piece::Tri([front[0], front[k], front[k + 1]]));
+            }
+        } else if ke == 3 {
+            pieces.push(Piece::Tri([ce[0], ce[1], ce[2]]));
+        } else {
+            pieces.push(Piece::Quad(ce));
+        }
+        let mut total = exact::Integral::default();
+        for piece in &pieces {
+            total += exact::integrate(piece, n_e, &recv, self.tol, floor);
+        }
+        total
     }
-    point_to_polygon(x, n_x, poly)
+
+    /// Sampled estimate of `∫_{A_e} F(x → P_r) v(x) dA_x` and its standard error.
+    #[allow(clippy::too_many_arguments)]
+    fn sampled_pair(
+        &self,
+        ctx: &Context,
+        (i, j): (usize, usize),
+        (e, r): (usize, usize),
+        free: bool,
+        row: &mut Row,
+        visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
+        s: &mut Scratch,
+    ) -> (f64, f64) {
+        let p = ctx.patches;
+        let reps = self.replicates.max(2);
+        let m = self.points.max(1);
+        let (cr, kr) = corners(p, r);
+        let (n_e, n_r) = (p.normal[e], p.normal[r]);
+        let recv = Receiver {
+            poly: &cr[..kr],
+            normal: n_r.as_dvec3(),
+            centroid: p.centroid[r].as_dvec3(),
+        };
+        let n_x = n_e.as_dvec3().normalize();
+        let on_r = p.sampler(r);
+        let w = p.area[e] / (m * m) as f64;
+        s.means.clear();
+        for rep in 0..reps {
+            let mut rng = Pcg32::keyed(ctx.seed, i as u64, j as u64, rep as u64);
+            jittered(&mut rng, m, &mut s.strata);
+            let mut sum = 0.0;
+            for k in 0..s.strata.len() {
+                let (u, v) = s.strata[k];
+                let xf = p.sample_point(e, u, v);
+                let f = exact::point_factor(xf.as_dvec3(), n_x, &recv);
+                if f <= 0.0 {
+                    continue;
+                }
+                let vis = if free {
+                    1.0
+                } else {
+                    jittered(&mut rng, self.vis_rays.max(1), &mut s.ys);
+                    s.segs.clear();
+                    s.gs.clear();
+                    for &(u, v) in &s.ys {
+                        let y = on_r.point(u, v);
+                        if let Some(g) = kernel(xf, n_e, y, n_r) {
+                            s.segs.push(ctx.vis.segment_ray(xf, n_e, y, n_r));
+                            s.gs.push(g);
+                        }
+                    }
+                    row.rays += s.segs.len() as u64;
+                    s.seen.clear();
+                    s.seen.resize(s.segs.len(), false);
+                    visible(&s.segs, &mut s.seen);
+                    let (mut g_all, mut g_vis) = (0.0, 0.0);
+                    for (&g, &seen) in s.gs.iter().zip(&s.seen) {
+                        g_all += g;
+                        if seen {
+                            g_vis += g;
+                        }
+                    }
+                    // No sample in view: the visible sliver of P_r is below the sampling
+                    // resolution and counts as hidden.
+                    if g_all > 0.0 {
+                        g_vis / g_all
+                    } else {
+                        0.0
+                    }
+                };
+                sum += w * f * vis;
+            }
+            s.means.push(sum);
+        }
+        let avg = s.means.iter().sum::<f64>() / reps as f64;
+        let var = s.means.iter().map(|v| (v - avg).powi(2)).sum::<f64>() / (reps - 1) as f64;
+        (avg, (var / reps as f64).sqrt())
+    }
 }
 
 #[cfg(test)]
@@ -446,12 +490,7 @@ mod tests {
 
     #[test]
     fn plates_match_closed_forms() {
-        let est = SemiAnalytic {
-            nodes: Nodes::Gauss,
-            points: 12,
-            vis_rays: 4,
-            replicates: 2,
-        };
+        let est = SemiAnalytic::new(Nodes::Gauss, 12, 4, 2);
         let (f01, f10, rays) = plates("plates-parallel", &est);
         let want = parallel_rectangles(1.0, 1.0, 1.0);
         assert!(
@@ -470,12 +509,7 @@ mod tests {
 
     #[test]
     fn stratified_nodes_agree_within_error_bars() {
-        let est = SemiAnalytic {
-            nodes: Nodes::Stratified,
-            points: 8,
-            vis_rays: 2,
-            replicates: 16,
-        };
+        let est = SemiAnalytic::new(Nodes::Stratified, 8, 2, 16);
         let scene = Scene::load("plates-perpendicular").unwrap();
         let patches = PatchSet::build(&scene, Resolution::MaxEdge(10.0)).unwrap();
         let vis = Visibility::new(&patches).unwrap();
@@ -503,12 +537,7 @@ mod tests {
             vis: &vis,
             seed: 5,
         };
-        let est = SemiAnalytic {
-            nodes: Nodes::Gauss,
-            points: 8,
-            vis_rays: 3,
-            replicates: 2,
-        };
+        let est = SemiAnalytic::new(Nodes::Gauss, 8, 3, 2);
         let ff = compute(&ctx, &est, &|_| {});
         assert_eq!(ff.rays, 0);
         for i in 0..patches.len() {
@@ -530,12 +559,7 @@ mod tests {
             vis: &vis,
             seed: 7,
         };
-        let semi = SemiAnalytic {
-            nodes: Nodes::Stratified,
-            points: 6,
-            vis_rays: 4,
-            replicates: 8,
-        };
+        let semi = SemiAnalytic::new(Nodes::Stratified, 6, 4, 8);
         let mc = AreaMc {
             pattern: Pattern::Stratified,
             strata: 24,

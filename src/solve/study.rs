@@ -63,6 +63,7 @@ impl Settings {
                 points: 2,
                 rays: 1,
                 replicates: 2,
+                tol: crate::formfactor::SemiAnalytic::DEFAULT_TOL,
             },
         }
     }

@@ -105,12 +105,12 @@ pub fn estimator(kind: Kind, budget: usize) -> Box<dyn Estimator> {
         Kind::Semi => {
             // Up to 16 Gauss nodes per side, the rest of the budget to visibility rays.
             let points = s.clamp(2, 16);
-            Box::new(SemiAnalytic {
-                nodes: Nodes::Gauss,
+            Box::new(SemiAnalytic::new(
+                Nodes::Gauss,
                 points,
-                vis_rays: (s / points).max(1),
-                replicates: r,
-            })
+                (s / points).max(1),
+                r,
+            ))
         }
         Kind::Hemicube => Box::new(Hemicube {
             res: ((budget as f64 / 3.0).sqrt().round() as usize).max(2),
