@@ -221,27 +221,29 @@ pub fn point_to_polygon_unit(x: DVec3, n: DVec3, poly: &[DVec3]) -> f64 {
     let m = poly.len();
     if (3..=4).contains(&m) {
         let mut r = [DVec3::ZERO; 4];
-        let mut len = [0.0f64; 4];
-        let (mut all_front, mut front, mut reach) = (true, f64::NEG_INFINITY, 0.0f64);
+        let mut len2 = [0.0f64; 4];
+        let (mut all_front, mut front, mut reach2) = (true, f64::NEG_INFINITY, 0.0f64);
         for k in 0..m {
             r[k] = poly[k] - x;
             let d = n.dot(r[k]);
             // Corners on the plane need no clipping either (no edge crosses it).
             all_front &= d >= 0.0;
             front = front.max(d);
-            len[k] = r[k].length();
-            reach = reach.max(len[k]);
+            len2[k] = r[k].length_squared();
+            reach2 = reach2.max(len2[k]);
         }
         if all_front {
-            if front <= 1e-12 * reach {
+            // The same tests as the general path, squared.
+            if front <= 0.0 || front * front <= 1e-24 * reach2 {
                 return 0.0;
             }
             let mut sum = 0.0;
             for k in 0..m {
                 let k1 = if k + 1 == m { 0 } else { k + 1 };
                 let c = r[k].cross(r[k1]);
-                let cl = c.length();
-                if cl > 1e-12 * len[k] * len[k1] {
+                let cl2 = c.length_squared();
+                if cl2 > 1e-24 * len2[k] * len2[k1] {
+                    let cl = cl2.sqrt();
                     sum += angle(cl, r[k].dot(r[k1])) * n.dot(c) / cl;
                 }
             }

@@ -469,7 +469,7 @@ pub fn run() -> Result<()> {
             let p = &s.provenance;
             let d = &s.diagnostics;
             println!(
-                "factors of `{}`: {} patches, {} stored, {} rays by {} in {:.2}s",
+                "factors of `{}`: {} patches, {} stored, {} rays by {} in {:.3}s",
                 p.scene, p.patches, p.nnz, p.rays, p.estimator, p.seconds
             );
             println!(

@@ -13,7 +13,9 @@
 //!   distance. For a function analytic inside the Bernstein ellipse with foci at the ends
 //!   of the interval and semi-axis sum `ρ`, the `m`-point rule's error falls as `ρ^(-2m)`
 //!   (Trefethen 2008, "Is Gauss quadrature better than Clenshaw–Curtis?", Theorem 4.5). A
-//!   singularity at distance `δ` (in half-widths of the piece) from the interval gives
+//!   singularity at distance `δ` (in radii of the piece, which bound the half-length of
+//!   every parameter line; the distance bounded below by the distance from the piece's
+//!   centre to `P_r` less the radius) from the interval gives
 //!   `ρ ≥ 1 + δ + sqrt(δ (2 + δ))` (the worst case: on the interval's axis), so the order
 //!   is the smallest `m` with `ρ^(-2m) <= tol`. The result is then checked *a posteriori*
 //!   against the order `m - 2` rule: with geometric convergence the error of `Q_m` is
@@ -106,10 +108,11 @@ impl Piece {
     /// Centre (image of the parameter centre) and the largest corner distance from it.
     fn ball(&self) -> (DVec3, f64) {
         let ctr = self.at(0.5, 0.5, 0.5, 0.5).0;
-        let r = match self {
-            Piece::Quad(c) => c.iter().map(|&p| (p - ctr).length()).fold(0.0, f64::max),
-            Piece::Tri(c) => c.iter().map(|&p| (p - ctr).length()).fold(0.0, f64::max),
+        let corners: &[DVec3] = match self {
+            Piece::Quad(c) => c,
+            Piece::Tri(c) => c,
         };
+        let r = corners.iter().map(|&p| (p - ctr).length()).fold(0.0, f64::max);
         (ctr, r)
     }
 
@@ -290,10 +293,49 @@ fn tensor(piece: &Piece, rule: &Rule, f: &mut impl FnMut(DVec3) -> f64) -> f64 {
     sum
 }
 
-/// `∫_{piece} F(x → P_r) dA_x` (emitter normal `n_e`) to within about `tol_rel` of its value
-/// (and never chasing below `abs_floor`).
+/// An emitter piece with its Gauss–Legendre nodes (point, weight × Jacobian) cached by
+/// order, so that one emitter integrated against many receivers maps its nodes once.
+#[derive(Clone, Debug)]
+pub struct Emitter {
+    piece: Piece,
+    ball: (DVec3, f64),
+    nodes: [Vec<(DVec3, f64)>; MAX_ORDER + 1],
+}
+
+impl Emitter {
+    /// An emitter over `piece`.
+    pub fn new(piece: Piece) -> Emitter {
+        Emitter {
+            piece,
+            ball: piece.ball(),
+            nodes: std::array::from_fn(|_| Vec::new()),
+        }
+    }
+
+    /// The tensor Gauss rule of order `m` applied to `f`.
+    fn gauss(&mut self, m: usize, f: &mut impl FnMut(DVec3) -> f64) -> f64 {
+        if self.nodes[m].is_empty() {
+            let rule = &rules().gauss[m];
+            let piece = self.piece;
+            self.nodes[m] = rule
+                .iter()
+                .flat_map(|&(u, um, wu)| {
+                    rule.iter().map(move |&(v, vm, wv)| {
+                        let (x, jac) = piece.at(u, um, v, vm);
+                        (x, wu * wv * jac)
+                    })
+                })
+                .filter(|&(_, w)| w > 0.0)
+                .collect();
+        }
+        self.nodes[m].iter().map(|&(x, w)| w * f(x)).sum()
+    }
+}
+
+/// `∫_{piece} F(x → P_r) dA_x` (emitter normal `n_e`, unit length) to within about
+/// `tol_rel` of its value (and never chasing below `abs_floor`).
 pub fn integrate(
-    piece: &Piece,
+    emitter: &mut Emitter,
     n_e: DVec3,
     r: &Receiver,
     tol_rel: f64,
@@ -305,7 +347,7 @@ pub fn integrate(
         point_factor(x, n_e, r)
     };
     let tol_rel = tol_rel.max(1e-15);
-    let mut out = integrate_piece(piece, r, tol_rel, None, abs_floor, 0, &mut f);
+    let mut out = integrate_piece(emitter, r, tol_rel, None, abs_floor, 0, &mut f);
     out.evals = evals;
     out
 }
@@ -324,7 +366,7 @@ fn gauss_order(delta: f64, tol_rel: f64) -> Option<(usize, f64)> {
 
 #[allow(clippy::too_many_arguments)]
 fn integrate_piece(
-    piece: &Piece,
+    em: &mut Emitter,
     r: &Receiver,
     tol_rel: f64,
     tol_abs: Option<f64>,
@@ -333,7 +375,11 @@ fn integrate_piece(
     f: &mut impl FnMut(DVec3) -> f64,
 ) -> Integral {
     let rules = rules();
-    let (ctr, radius) = piece.ball();
+    let piece = em.piece;
+    let (ctr, radius) = em.ball;
+    // A lower bound of the distance from the piece to P_r, in radii of the piece (a
+    // radius bounds the half-length of every parameter line; the tighter half-length of
+    // the longest edge was tried and under-estimated errors on the cube).
     let dist = point_polygon_distance(ctr, r.poly) - radius;
     let delta = dist / radius.max(f64::MIN_POSITIVE);
     // The absolute target: from the caller, or relative to a first estimate of this piece.
@@ -356,14 +402,14 @@ fn integrate_piece(
         0
     };
     let mut lo = if lo_m > 0 {
-        tensor(piece, &rules.gauss[lo_m], f)
+        em.gauss(lo_m, f)
     } else {
         f64::NAN
     };
     let mut best: Option<Integral> = None;
     let mut m = m0;
     while m <= MAX_ORDER {
-        let hi = tensor(piece, &rules.gauss[m], f);
+        let hi = em.gauss(m, f);
         if lo_m > 0 {
             let diff = (hi - lo).abs();
             // Geometric convergence: the error of Q_m is about diff · ρ^(-2 (m - lo_m)).
@@ -433,7 +479,8 @@ fn integrate_piece(
     let quarter = target(best.value) / 4.0;
     let mut total = Integral::default();
     for q in piece.split() {
-        total += integrate_piece(&q, r, tol_rel, Some(quarter), abs_floor, depth + 1, f);
+        let mut sub = Emitter::new(q);
+        total += integrate_piece(&mut sub, r, tol_rel, Some(quarter), abs_floor, depth + 1, f);
     }
     if total.err <= best.err {
         total
@@ -480,7 +527,7 @@ mod tests {
             normal: y,
             centroid: DVec3::new(0.5, 0.0, 0.5),
         };
-        let got = integrate(&emit, z, &r, 1e-12, 0.0);
+        let got = integrate(&mut Emitter::new(emit), z, &r, 1e-12, 0.0);
         let want = perpendicular_rectangles(1.0, 1.0, 1.0);
         assert!((got.value - want).abs() < 1e-11, "{got:?} vs {want}");
         assert!(
@@ -494,7 +541,7 @@ mod tests {
             normal: -z,
             centroid: DVec3::new(0.5, 0.5, 1.0),
         };
-        let got = integrate(&emit, z, &r, 1e-12, 0.0);
+        let got = integrate(&mut Emitter::new(emit), z, &r, 1e-12, 0.0);
         let want = parallel_rectangles(1.0, 1.0, 1.0);
         assert!((got.value - want).abs() < 1e-12, "{got:?} vs {want}");
     }
@@ -533,7 +580,7 @@ mod tests {
         let centre = |p: &[DVec3; 4]| p.iter().copied().sum::<DVec3>() / 4.0;
         for tol in [1e-6, 1e-9] {
             let ab = integrate(
-                &Piece::Quad(a),
+                &mut Emitter::new(Piece::Quad(a)),
                 na,
                 &Receiver {
                     poly: &b,
@@ -544,7 +591,7 @@ mod tests {
                 0.0,
             );
             let ba = integrate(
-                &Piece::Quad(b),
+                &mut Emitter::new(Piece::Quad(b)),
                 nb,
                 &Receiver {
                     poly: &a,
