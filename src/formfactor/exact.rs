@@ -112,7 +112,10 @@ impl Piece {
             Piece::Quad(c) => c,
             Piece::Tri(c) => c,
         };
-        let r = corners.iter().map(|&p| (p - ctr).length()).fold(0.0, f64::max);
+        let r = corners
+            .iter()
+            .map(|&p| (p - ctr).length())
+            .fold(0.0, f64::max);
         (ctr, r)
     }
 

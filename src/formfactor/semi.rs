@@ -608,30 +608,3 @@ mod tests {
         assert!(worst < 6.0, "worst z {worst}");
     }
 }
-#[cfg(test)]
-mod probe2 {
-    use super::*;
-    use crate::mesh::Resolution;
-    use crate::scene::Scene;
-    #[test]
-    fn probe_cube_evals() {
-        let scene = Scene::load("cube").unwrap();
-        let p = PatchSet::build(&scene, Resolution::MaxEdge(0.03125)).unwrap();
-        for tol in [1e-7, 1e-8] {
-            let est = SemiAnalytic::new(Nodes::Gauss, 3, 2, 2).with_tol(tol);
-            let mut hist = std::collections::BTreeMap::new();
-            let (mut pairs, mut evals) = (0u64, 0u64);
-            let t = std::time::Instant::now();
-            for i in (0..p.len()).step_by(97) {
-                for j in i + 1..p.len() {
-                    if plane_range(&p, i, j).1 <= 1e-6 || plane_range(&p, j, i).1 <= 1e-6 { continue; }
-                    let g = est.exact_pair(&p, i, j, None);
-                    *hist.entry(g.evals).or_insert(0u64) += 1;
-                    pairs += 1;
-                    evals += g.evals;
-                }
-            }
-            println!("tol {tol}: {pairs} pairs, {:.2} evals/pair, {:.0} ns/pair {hist:?}", evals as f64 / pairs as f64, t.elapsed().as_nanos() as f64 / pairs as f64);
-        }
-    }
-}
