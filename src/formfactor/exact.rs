@@ -282,20 +282,6 @@ pub fn point_factor(x: DVec3, n_x: DVec3, r: &Receiver) -> f64 {
     point_to_polygon_unit(x, n_x, r.poly)
 }
 
-/// Tensor rule over a piece.
-fn tensor(piece: &Piece, rule: &Rule, f: &mut impl FnMut(DVec3) -> f64) -> f64 {
-    let mut sum = 0.0;
-    for &(u, um, wu) in rule {
-        for &(v, vm, wv) in rule {
-            let (x, jac) = piece.at(u, um, v, vm);
-            if jac > 0.0 {
-                sum += wu * wv * jac * f(x);
-            }
-        }
-    }
-    sum
-}
-
 /// An emitter piece with its Gauss–Legendre nodes (point, weight × Jacobian) cached by
 /// order, so that one emitter integrated against many receivers maps its nodes once.
 #[derive(Clone, Debug)]
