@@ -91,7 +91,7 @@ def read_mtx(path, n):
     while data.startswith(b"%", pos):
         pos = data.index(b"\n", pos) + 1
     pos = data.index(b"\n", pos) + 1
-    t = np.array(data[pos:].split(), dtype=float).reshape(-1, 3)
+    t = np.fromstring(data[pos:].decode(), sep=" ").reshape(-1, 3)
     F = np.zeros((n, n))
     F[t[:, 0].astype(int) - 1, t[:, 1].astype(int) - 1] = t[:, 2]
     return F
