@@ -88,6 +88,18 @@ impl Wy {
         }
     }
 
+    /// Substream `r` of this stream: the same Weyl sequence started `r * 2^32` draws
+    /// further on, so substreams `r < 2^32` of up to `2^32` draws each never overlap (the
+    /// increment is odd, hence invertible modulo 2^64). Keyed on the stream's key and `r`.
+    #[inline]
+    pub fn substream(&self, r: u64) -> Wy {
+        Wy {
+            state: self
+                .state
+                .wrapping_add(r.wrapping_mul(WY_INC.wrapping_shl(32))),
+        }
+    }
+
     /// Next 64 random bits.
     #[inline(always)]
     pub fn next_u64(&mut self) -> u64 {
@@ -200,6 +212,13 @@ mod tests {
         assert!((var - 1.0 / 12.0).abs() < 2e-3, "{var}");
         assert!(cov.abs() < 5.0 / 12.0 / m.sqrt(), "{cov}");
         assert_eq!(unit_f32(u32::MAX), 1.0 - 1.0 / 16_777_216.0);
+        // Substream 0 is the stream itself; substream 1 starts 2^32 draws further on.
+        let base = Wy::keyed(1, 2, 3, 0);
+        assert_eq!(base.substream(0).next_u64(), base.clone().next_u64());
+        let mut far = base;
+        far.state = far.state.wrapping_add(WY_INC.wrapping_mul(1 << 32));
+        assert_eq!(base.substream(1).next_u64(), far.next_u64());
+        assert_ne!(base.substream(1).next_u64(), base.substream(2).next_u64());
     }
 
     #[test]

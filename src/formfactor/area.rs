@@ -21,7 +21,8 @@
 //!
 //! Pairs with one patch wholly behind the other's plane are culled without rays; a sample
 //! pair facing away (cos <= 0) contributes 0 without a ray. Each stream is keyed on
-//! `(seed, a, b, replicate)`, so the result does not depend on the thread count.
+//! `(seed, a, b, replicate)` (substream `replicate` of the pair's `(seed, a, b)` stream,
+//! [`Wy::substream`]), so the result does not depend on the thread count.
 //!
 //! The inner loop works in `f32` over all the samples of a pair at once (structure of
 //! arrays): unit-square coordinates with 24 random bits each from a counter-based
@@ -38,6 +39,7 @@ use glam::Vec3;
 use super::{Context, Entry, Estimator, Row};
 use std::f64::consts::FRAC_1_PI;
 
+use crate::mesh::PatchSampler;
 use crate::sampling::{unit_f32, Wy};
 use crate::visibility::SegmentRay;
 
@@ -142,11 +144,18 @@ impl AreaMc {
         row: &mut Row,
         visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
     ) {
-        for b in a + 1..ctx.patches.len() {
-            if let Some(e) = self.pair_with(ctx, a, b, &mut row.rays, visible) {
-                row.entries.push(e);
+        let on_a = ctx.patches.sampler(a);
+        SCRATCH.with(|s| {
+            let s = &mut s.borrow_mut();
+            for b in a + 1..ctx.patches.len() {
+                if behind(ctx, a, b) || behind(ctx, b, a) {
+                    continue;
+                }
+                if let Some(e) = self.pair_in(ctx, a, b, &on_a, &mut row.rays, visible, s) {
+                    row.entries.push(e);
+                }
             }
-        }
+        });
     }
 
     /// The entry `F_ab` of the unordered pair (a, b) (`F_ba` follows by reciprocity), or
@@ -164,14 +173,18 @@ impl AreaMc {
         if behind(ctx, a, b) || behind(ctx, b, a) {
             return None;
         }
-        SCRATCH.with(|s| self.pair_in(ctx, a, b, rays, visible, &mut s.borrow_mut()))
+        let on_a = ctx.patches.sampler(a);
+        SCRATCH.with(|s| self.pair_in(ctx, a, b, &on_a, rays, visible, &mut s.borrow_mut()))
     }
 
+    /// [`AreaMc::pair_with`] after the culling test, with the sampler of patch a.
+    #[allow(clippy::too_many_arguments)]
     fn pair_in(
         &self,
         ctx: &Context,
         a: usize,
         b: usize,
+        on_a: &PatchSampler,
         rays: &mut u64,
         visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
         s: &mut Scratch,
@@ -186,7 +199,7 @@ impl AreaMc {
         // coordinates, points on both patches, then kernel and segment rays.
         self.unit_square(ctx.seed, a, b, m, reps, s);
         let (n_a, n_b) = (p.normal[a], p.normal[b]);
-        p.sampler(a).points32(&s.u[0], &s.u[1], &mut s.x);
+        on_a.points32(&s.u[0], &s.u[1], &mut s.x);
         p.sampler(b).points32(&s.u[2], &s.u[3], &mut s.y);
         let eps = ctx.vis.eps();
         kernel_and_segments(&s.x, n_a, &s.y, n_b, eps, &mut s.g, &mut s.ok, &mut s.seg);
@@ -244,7 +257,8 @@ impl AreaMc {
     }
 
     /// The pair's sample coordinates `(x_u, x_v, y_u, y_v)` in the unit square into
-    /// `s.u[0..4]`, `m` per replicate, each replicate from its own `(seed, a, b, r)` stream.
+    /// `s.u[0..4]`, `m` per replicate, each replicate from its own substream `r` of the
+    /// pair's `(seed, a, b)` stream ([`Wy::substream`]).
     fn unit_square(&self, seed: u64, a: usize, b: usize, m: usize, reps: usize, s: &mut Scratch) {
         match self.pattern {
             Pattern::Stratified => {
@@ -256,30 +270,27 @@ impl AreaMc {
                 let inv = 1.0 / self.grid() as f32;
                 let [c0, c1, c2, c3] = &s.cells;
                 let (c0, c1, c2, c3) = (&c0[..m], &c1[..m], &c2[..m], &c3[..m]);
-                let [w0, w1] = &mut s.w;
-                let (w0, w1) = (&mut w0[..m], &mut w1[..m]);
                 let [u0, u1, u2, u3] = &mut s.u;
+                let pair = Wy::keyed(seed, a as u64, b as u64, 0);
                 for r in 0..reps {
-                    let mut rng = Wy::keyed(seed, a as u64, b as u64, r as u64);
-                    for k in 0..m {
-                        w0[k] = rng.next_u64();
-                        w1[k] = rng.next_u64();
-                    }
+                    let mut rng = pair.substream(r as u64);
                     let range = r * m..(r + 1) * m;
                     let (u0, u1) = (&mut u0[range.clone()], &mut u1[range.clone()]);
                     let (u2, u3) = (&mut u2[range.clone()], &mut u3[range]);
                     for k in 0..m {
-                        u0[k] = (c0[k] + unit_f32(w0[k] as u32)) * inv;
-                        u1[k] = (c1[k] + unit_f32((w0[k] >> 32) as u32)) * inv;
-                        u2[k] = (c2[k] + unit_f32(w1[k] as u32)) * inv;
-                        u3[k] = (c3[k] + unit_f32((w1[k] >> 32) as u32)) * inv;
+                        let (w0, w1) = (rng.next_u64(), rng.next_u64());
+                        u0[k] = (c0[k] + unit_f32(w0 as u32)) * inv;
+                        u1[k] = (c1[k] + unit_f32((w0 >> 32) as u32)) * inv;
+                        u2[k] = (c2[k] + unit_f32(w1 as u32)) * inv;
+                        u3[k] = (c3[k] + unit_f32((w1 >> 32) as u32)) * inv;
                     }
                 }
             }
             Pattern::Sobol => {
+                let pair = Wy::keyed(seed, a as u64, b as u64, 0);
                 for r in 0..reps {
                     // Owen scrambling with a fresh seed per replicate.
-                    let scramble = Wy::keyed(seed, a as u64, b as u64, r as u64).next_u64() as u32;
+                    let scramble = pair.substream(r as u64).next_u64() as u32;
                     for k in 0..m {
                         let q = sobol_burley::sample_4d(k as u32, 0, scramble);
                         for (u, q) in s.u.iter_mut().zip(q) {
@@ -289,8 +300,9 @@ impl AreaMc {
                 }
             }
             Pattern::Uniform => {
+                let pair = Wy::keyed(seed, a as u64, b as u64, 0);
                 for r in 0..reps {
-                    let mut rng = Wy::keyed(seed, a as u64, b as u64, r as u64);
+                    let mut rng = pair.substream(r as u64);
                     for k in r * m..(r + 1) * m {
                         let (u0, u1) = rng.next_f32x2();
                         let (u2, u3) = rng.next_f32x2();
@@ -375,8 +387,6 @@ const SEGMENT_TFAR: f32 = 1.0 - 1e-4;
 /// pair of all replicates, as structure of arrays.
 #[derive(Default)]
 struct Scratch {
-    /// Random words, two per sample pair of one replicate.
-    w: [Vec<u64>; 2],
     /// Cells of the stratified pattern ([`AreaMc::cells`]), one replicate's worth.
     cells: [Vec<f32>; 4],
     /// Unit-square coordinates `(x_u, x_v, y_u, y_v)`.
@@ -401,8 +411,8 @@ struct Scratch {
 impl Scratch {
     /// Sizes the per-sample arrays for `len` sample pairs.
     fn resize(&mut self, len: usize) {
-        for v in &mut self.w {
-            v.resize(len, 0);
+        if self.g.len() == len {
+            return;
         }
         for v in self
             .u

@@ -143,12 +143,12 @@ struct Scratch {
     cells_of: usize,
     /// Random permutation pairing position strata with direction strata.
     perm: Vec<u32>,
-    /// Unit-square coordinates of positions and of directions, one row's worth.
+    /// Unit-square coordinates of positions and of directions, one replicate's worth.
     u: [Vec<f32>; 4],
     /// Points on the patch and local directions.
     x: [Vec<f32>; 3],
     d: [Vec<f32>; 3],
-    /// Rays `(origin, direction)` of the row, replicate after replicate, and what they hit.
+    /// Rays `(origin, direction)` of one replicate, and what they hit.
     rays: Vec<Ray>,
     hits: Vec<u32>,
     /// Hit tallies: `counts[j * reps + r]` is valid when `stamp[j] == row`, the running row
@@ -167,7 +167,7 @@ impl Hemisphere {
     /// Row `i` with `first_hits(rays, out)` answering the closest-hit query for a batch of
     /// rays `(origin, unit direction)` (origins already offset off patch i, see
     /// [`crate::visibility::Visibility::first_hit_origin`]): `out[k]` is the patch ray k hits
-    /// first, or [`NO_HIT`]. One batch per row; the rays asked for do not depend on the
+    /// first, or [`NO_HIT`]. One batch per replicate; the rays asked for do not depend on the
     /// answers, so a recorder sees the exact ray set.
     pub fn row_with(
         &self,
@@ -191,27 +191,36 @@ impl Hemisphere {
         let reps = self.replicates.max(2);
         let st = self.strata.max(1);
         let m = st * st;
-        let len = m * reps;
-        s.prepare(st, len, p.len(), reps);
-        // Unit-square coordinates of every ray of the row, replicate after replicate: a
-        // jittered position in stratum k, and a jittered direction in stratum perm[k] of a
-        // fresh random permutation (Fisher-Yates), from the (seed, i, replicate) stream.
+        s.prepare(st, m, p.len(), reps);
+        let n_i = p.normal[i];
+        let (t, b) = basis(n_i);
+        let off = n_i * ctx.vis.eps();
+        let on_i = p.sampler(i);
         let inv = 1.0 / st as f32;
-        let [c0, c1] = &s.cells;
-        let (c0, c1) = (&c0[..m], &c1[..m]);
-        let perm = &mut s.perm[..m];
-        let [u0, u1, u2, u3] = &mut s.u;
+        // A new row stamp: every tally of an earlier row is stale.
+        s.row = s.row.wrapping_add(1);
+        if s.row == 0 {
+            s.stamp.iter_mut().for_each(|v| *v = 0);
+            s.row = 1;
+        }
+        s.touched.clear();
+        // One replicate at a time (its buffers stay in the L1 cache next to Embree's).
         for r in 0..reps {
+            // Unit-square coordinates: a jittered position in stratum k, and a jittered
+            // direction in stratum perm[k] of a fresh random permutation (Fisher-Yates),
+            // from the (seed, i, replicate) stream.
             let mut rng = Wy::keyed(ctx.seed, i as u64, u64::MAX, r as u64);
+            let perm = &mut s.perm[..m];
             for (k, q) in perm.iter_mut().enumerate() {
                 *q = k as u32;
             }
             for k in (1..m).rev() {
                 perm.swap(k, rng.below(k as u32 + 1) as usize);
             }
-            let range = r * m..(r + 1) * m;
-            let (u0, u1) = (&mut u0[range.clone()], &mut u1[range.clone()]);
-            let (u2, u3) = (&mut u2[range.clone()], &mut u3[range]);
+            let [c0, c1] = &s.cells;
+            let (c0, c1) = (&c0[..m], &c1[..m]);
+            let [u0, u1, u2, u3] = &mut s.u;
+            let (u0, u1, u2, u3) = (&mut u0[..m], &mut u1[..m], &mut u2[..m], &mut u3[..m]);
             for k in 0..m {
                 let (j0, j1) = rng.next_f32x2();
                 let (j2, j3) = rng.next_f32x2();
@@ -221,37 +230,22 @@ impl Hemisphere {
                 u2[k] = (c0[c] + j2) * inv;
                 u3[k] = (c1[c] + j3) * inv;
             }
-        }
-        p.sampler(i)
-            .points32(&s.u[0][..len], &s.u[1][..len], &mut s.x);
-        cosine_directions(&s.u[2][..len], &s.u[3][..len], &mut s.d);
-        // World directions (unit up to rounding: the basis is orthonormal), origins offset
-        // along the normal: every direction leaves the front side (z >= 0).
-        let n_i = p.normal[i];
-        let (t, b) = basis(n_i);
-        let off = n_i * ctx.vis.eps();
-        let [x0, x1, x2] = &s.x;
-        let (x0, x1, x2) = (&x0[..len], &x1[..len], &x2[..len]);
-        let [d0, d1, d2] = &s.d;
-        let (d0, d1, d2) = (&d0[..len], &d1[..len], &d2[..len]);
-        s.rays.resize(len, (Vec3::ZERO, Vec3::ZERO));
-        for (k, ray) in s.rays[..len].iter_mut().enumerate() {
-            let w = t * d0[k] + b * d1[k] + n_i * d2[k];
-            *ray = (Vec3::new(x0[k], x1[k], x2[k]) + off, w);
-        }
-        first_hits(&s.rays, &mut s.hits[..len]);
-        row.rays += len as u64;
-        // Count front-face hits per (patch, replicate) in the dense per-thread tallies.
-        s.row = s.row.wrapping_add(1);
-        if s.row == 0 {
-            s.stamp.iter_mut().for_each(|v| *v = 0);
-            s.row = 1;
-        }
-        s.touched.clear();
-        let (stamp, counts) = (&mut s.stamp[..], &mut s.counts[..]);
-        for r in 0..reps {
-            let range = r * m..(r + 1) * m;
-            for (&j, ray) in s.hits[range.clone()].iter().zip(&s.rays[range]) {
+            on_i.points32(&s.u[0][..m], &s.u[1][..m], &mut s.x);
+            cosine_directions(&s.u[2][..m], &s.u[3][..m], &mut s.d);
+            // World directions (unit up to rounding: the basis is orthonormal), origins
+            // offset along the normal: every direction leaves the front side (z >= 0).
+            let [x0, x1, x2] = &s.x;
+            let (x0, x1, x2) = (&x0[..m], &x1[..m], &x2[..m]);
+            let [d0, d1, d2] = &s.d;
+            let (d0, d1, d2) = (&d0[..m], &d1[..m], &d2[..m]);
+            for (k, ray) in s.rays[..m].iter_mut().enumerate() {
+                let w = t * d0[k] + b * d1[k] + n_i * d2[k];
+                *ray = (Vec3::new(x0[k], x1[k], x2[k]) + off, w);
+            }
+            first_hits(&s.rays[..m], &mut s.hits[..m]);
+            // Count front-face hits per (patch, replicate) in the dense per-thread tallies.
+            let (stamp, counts) = (&mut s.stamp[..], &mut s.counts[..]);
+            for (&j, ray) in s.hits[..m].iter().zip(&s.rays[..m]) {
                 if j == NO_HIT || j as usize == i || p.normal[j as usize].dot(ray.1) >= 0.0 {
                     continue;
                 }
@@ -264,6 +258,8 @@ impl Hemisphere {
                 counts[ju * reps + r] += 1;
             }
         }
+        row.rays += (m * reps) as u64;
+        let counts = &s.counts;
         let inv_m = 1.0 / m as f64;
         for &j in &s.touched {
             let c = &counts[j as usize * reps..(j as usize + 1) * reps];
@@ -283,8 +279,8 @@ impl Hemisphere {
 }
 
 impl Scratch {
-    /// Sizes the buffers for `len` rays, `st x st` strata per replicate, `reps` replicates
-    /// and a scene of `n` patches.
+    /// Sizes the buffers for `len` rays (one replicate), `st x st` strata per replicate,
+    /// `reps` replicates and a scene of `n` patches.
     fn prepare(&mut self, st: usize, len: usize, n: usize, reps: usize) {
         if self.stamp.len() < n {
             self.stamp.resize(n, 0);
@@ -309,6 +305,7 @@ impl Scratch {
             v.resize(len, 0.0);
         }
         self.hits.resize(len, NO_HIT);
+        self.rays.resize(len, (Vec3::ZERO, Vec3::ZERO));
     }
 }
 
