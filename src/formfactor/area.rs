@@ -202,30 +202,31 @@ impl AreaMc {
         on_a.points32(&s.u[0], &s.u[1], &mut s.x);
         p.sampler(b).points32(&s.u[2], &s.u[3], &mut s.y);
         let eps = ctx.vis.eps();
-        kernel_and_segments(&s.x, n_a, &s.y, n_b, eps, &mut s.g, &mut s.ok, &mut s.seg);
-        // Only the sample pairs that face each other cast rays.
+        kernels(&s.x, n_a, &s.y, n_b, &mut s.g, &mut s.ok);
+        // The segment ray of every sample pair (AoS, as the queries take them); then, in
+        // the rare pairs where some samples do not face each other, those are dropped.
         s.segs.resize(len, (Vec3::ZERO, Vec3::ZERO, 0.0));
-        s.gs.resize(len, 0.0);
+        segments(&s.x, n_a, &s.y, n_b, eps, &mut s.segs[..len]);
+        s.gs.clear();
+        s.gs.extend_from_slice(&s.g[..len]);
         s.ends.clear();
-        let [o0, o1, o2, d0, d1, d2] = &s.seg;
-        let (o0, o1, o2) = (&o0[..len], &o1[..len], &o2[..len]);
-        let (d0, d1, d2) = (&d0[..len], &d1[..len], &d2[..len]);
-        let (ok, g) = (&s.ok[..len], &s.g[..len]);
-        let (segs, gs) = (&mut s.segs[..len], &mut s.gs[..len]);
-        let mut n = 0;
-        for r in 0..reps {
-            for k in r * m..(r + 1) * m {
-                // Written always, kept when the pair faces (n <= k < len).
-                segs[n] = (
-                    Vec3::new(o0[k], o1[k], o2[k]),
-                    Vec3::new(d0[k], d1[k], d2[k]),
-                    SEGMENT_TFAR,
-                );
-                gs[n] = g[k];
-                n += ok[k] as usize;
+        let n = if s.ok[..len].iter().all(|&v| v) {
+            s.ends.extend((1..=reps).map(|r| r * m));
+            len
+        } else {
+            let mut n = 0;
+            for r in 0..reps {
+                for k in r * m..(r + 1) * m {
+                    if s.ok[k] {
+                        s.segs[n] = s.segs[k];
+                        s.gs[n] = s.gs[k];
+                        n += 1;
+                    }
+                }
+                s.ends.push(n);
             }
-            s.ends.push(n);
-        }
+            n
+        };
         *rays += n as u64;
         s.seen.resize(len, false);
         visible(&s.segs[..n], &mut s.seen[..n]);
@@ -338,30 +339,20 @@ impl AreaMc {
 }
 
 /// The kernel `cos θ_x cos θ_y / r²` (without the 1/π) of each sample pair `(x_k, y_k)`
-/// into `g`, whether the two points face each other (`ok`: the kernel is positive and a ray
-/// is needed), and the segment ray between them as `(origin, direction)` in six arrays:
-/// both points face each other, so both ends move off their surfaces along their own
-/// normals (the case [`crate::visibility::Visibility::segment_ray`] selects then), the same
-/// segment ray without its two tests.
-#[allow(clippy::too_many_arguments)]
-fn kernel_and_segments(
+/// into `g`, and whether the two points face each other (`ok`: the kernel is positive and a
+/// ray is needed).
+fn kernels(
     x: &[Vec<f32>; 3],
     n_x: Vec3,
     y: &[Vec<f32>; 3],
     n_y: Vec3,
-    eps: f32,
     g: &mut [f32],
     ok: &mut [bool],
-    seg: &mut [Vec<f32>; 6],
 ) {
     let len = g.len();
     let (x0, x1, x2) = (&x[0][..len], &x[1][..len], &x[2][..len]);
     let (y0, y1, y2) = (&y[0][..len], &y[1][..len], &y[2][..len]);
     let ok = &mut ok[..len];
-    let [o0, o1, o2, d0, d1, d2] = seg;
-    let (o0, o1, o2) = (&mut o0[..len], &mut o1[..len], &mut o2[..len]);
-    let (d0, d1, d2) = (&mut d0[..len], &mut d1[..len], &mut d2[..len]);
-    let (ox, oy) = (n_x * eps, n_y * eps);
     for k in 0..len {
         let (dx, dy, dz) = (y0[k] - x0[k], y1[k] - x1[k], y2[k] - x2[k]);
         let r2 = dx * dx + dy * dy + dz * dz;
@@ -370,13 +361,29 @@ fn kernel_and_segments(
         let inv = 1.0 / r2;
         g[k] = (cx * inv) * (cy * inv);
         ok[k] = (cx > 0.0) & (cy > 0.0) & (r2 > 0.0);
-        let org = [x0[k] + ox.x, x1[k] + ox.y, x2[k] + ox.z];
-        o0[k] = org[0];
-        o1[k] = org[1];
-        o2[k] = org[2];
-        d0[k] = (y0[k] + oy.x) - org[0];
-        d1[k] = (y1[k] + oy.y) - org[1];
-        d2[k] = (y2[k] + oy.z) - org[2];
+    }
+}
+
+/// The segment ray between each sample pair `(x_k, y_k)` that faces each other: both ends
+/// move off their surfaces along their own normals (the case
+/// [`crate::visibility::Visibility::segment_ray`] selects then), the same segment ray
+/// without its two tests.
+fn segments(
+    x: &[Vec<f32>; 3],
+    n_x: Vec3,
+    y: &[Vec<f32>; 3],
+    n_y: Vec3,
+    eps: f32,
+    out: &mut [SegmentRay],
+) {
+    let len = out.len();
+    let (x0, x1, x2) = (&x[0][..len], &x[1][..len], &x[2][..len]);
+    let (y0, y1, y2) = (&y[0][..len], &y[1][..len], &y[2][..len]);
+    let (ox, oy) = (n_x * eps, n_y * eps);
+    for (k, seg) in out.iter_mut().enumerate() {
+        let org = Vec3::new(x0[k] + ox.x, x1[k] + ox.y, x2[k] + ox.z);
+        let end = Vec3::new(y0[k] + oy.x, y1[k] + oy.y, y2[k] + oy.z);
+        *seg = (org, end - org, SEGMENT_TFAR);
     }
 }
 
@@ -394,10 +401,9 @@ struct Scratch {
     /// Points on patch a and on patch b.
     x: [Vec<f32>; 3],
     y: [Vec<f32>; 3],
-    /// Kernel values, facing tests and segment rays (origin, direction) of every pair.
+    /// Kernel values and facing tests of every pair.
     g: Vec<f32>,
     ok: Vec<bool>,
-    seg: [Vec<f32>; 6],
     /// The segment rays cast, replicate after replicate, with their kernel values and
     /// visibility.
     segs: Vec<SegmentRay>,
@@ -414,13 +420,7 @@ impl Scratch {
         if self.g.len() == len {
             return;
         }
-        for v in self
-            .u
-            .iter_mut()
-            .chain(&mut self.x)
-            .chain(&mut self.y)
-            .chain(&mut self.seg)
-        {
+        for v in self.u.iter_mut().chain(&mut self.x).chain(&mut self.y) {
             v.resize(len, 0.0);
         }
         self.g.resize(len, 0.0);

@@ -135,6 +135,12 @@ pub fn cosine_directions(u: &[f32], v: &[f32], out: &mut [Vec<f32>; 3]) {
     }
 }
 
+/// `floor(x n / 2^32)`: an integer in [0, n) from 32 random bits `x`.
+#[inline(always)]
+fn below(x: u32, n: u32) -> usize {
+    ((x as u64 * n as u64) >> 32) as usize
+}
+
 /// Per-thread buffers of [`Hemisphere::row_with`], kept between rows.
 #[derive(Default)]
 struct Scratch {
@@ -214,8 +220,15 @@ impl Hemisphere {
             for (k, q) in perm.iter_mut().enumerate() {
                 *q = k as u32;
             }
-            for k in (1..m).rev() {
-                perm.swap(k, rng.below(k as u32 + 1) as usize);
+            // Two 32-bit draws per word (Lemire's multiply, bias below 2^-32 m).
+            let mut k = m - 1;
+            while k >= 1 {
+                let w = rng.next_u64();
+                perm.swap(k, below(w as u32, k as u32 + 1));
+                if k >= 2 {
+                    perm.swap(k - 1, below((w >> 32) as u32, k as u32));
+                }
+                k = k.saturating_sub(2);
             }
             let [c0, c1] = &s.cells;
             let (c0, c1) = (&c0[..m], &c1[..m]);
