@@ -273,19 +273,25 @@ impl Hemisphere {
         }
         row.rays += (m * reps) as u64;
         let counts = &s.counts;
-        let inv_m = 1.0 / m as f64;
+        // Entries in column order (the matrix assembly then finds each row sorted), mean
+        // and variance of the replicate means from exact integer sums: with S = Σ c_r and
+        // Q = Σ c_r², Var = (R Q - S²) / (R (R - 1) m²).
+        s.touched.sort_unstable();
+        let rf = reps as f64;
+        let (inv_mr, inv_var) = (
+            1.0 / (m as f64 * rf),
+            1.0 / (rf * (rf - 1.0) * (m as f64).powi(2)),
+        );
         for &j in &s.touched {
             let c = &counts[j as usize * reps..(j as usize + 1) * reps];
-            let avg = c.iter().map(|&c| c as f64 * inv_m).sum::<f64>() / reps as f64;
-            let var = c
-                .iter()
-                .map(|&c| (c as f64 * inv_m - avg).powi(2))
-                .sum::<f64>()
-                / (reps - 1) as f64;
+            let (sum, sq) = c.iter().fold((0u64, 0u64), |(a, q), &c| {
+                (a + c as u64, q + c as u64 * c as u64)
+            });
+            let var = (reps as u64 * sq - sum * sum) as f64 * inv_var;
             row.entries.push(Entry {
                 j,
-                f: avg,
-                se: (var / reps as f64).sqrt(),
+                f: sum as f64 * inv_mr,
+                se: (var / rf).sqrt(),
             });
         }
     }
