@@ -99,11 +99,17 @@ impl AreaMc {
 
 /// Plane test: true when every corner of patch `b` lies on or behind the plane of `a`.
 fn behind(ctx: &Context, a: usize, b: usize) -> bool {
+    let (pts, k) = ctx.patches.corner_points(b);
+    behind_plane(ctx, a, &pts[..k])
+}
+
+/// [`behind`] with the corners of patch `b` given.
+#[inline]
+fn behind_plane(ctx: &Context, a: usize, corners: &[Vec3]) -> bool {
     let p = ctx.patches;
     let (n, c) = (p.normal[a], p.centroid[a]);
     let tol = 1e-6 * p.diagonal as f32;
-    let (pts, k) = p.corner_points(b);
-    pts[..k].iter().all(|&q| n.dot(q - c) <= tol)
+    corners.iter().all(|&q| n.dot(q - c) <= tol)
 }
 
 impl Estimator for AreaMc {
@@ -144,14 +150,21 @@ impl AreaMc {
         row: &mut Row,
         visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
     ) {
-        let on_a = ctx.patches.sampler(a);
+        let p = ctx.patches;
+        let (pa, ka) = p.corner_points(a);
+        let on_a = PatchSampler::of_corners(pa, ka);
+        let m = self.pairs_per_replicate();
         SCRATCH.with(|s| {
             let s = &mut s.borrow_mut();
-            for b in a + 1..ctx.patches.len() {
-                if behind(ctx, a, b) || behind(ctx, b, a) {
+            for b in a + 1..p.len() {
+                // The corners of b serve both culling tests and b's sampler.
+                let (pb, kb) = p.corner_points(b);
+                if behind_plane(ctx, a, &pb[..kb]) || behind_plane(ctx, b, &pa[..ka]) {
                     continue;
                 }
-                if let Some(e) = self.pair_in(ctx, a, b, &on_a, &mut row.rays, visible, s) {
+                let on_b = PatchSampler::of_corners(pb, kb);
+                let (ons, rays) = ((&on_a, &on_b), &mut row.rays);
+                if let Some(e) = self.pair_in(ctx, a, b, ons, m, rays, visible, s) {
                     row.entries.push(e);
                 }
             }
@@ -173,24 +186,26 @@ impl AreaMc {
         if behind(ctx, a, b) || behind(ctx, b, a) {
             return None;
         }
-        let on_a = ctx.patches.sampler(a);
-        SCRATCH.with(|s| self.pair_in(ctx, a, b, &on_a, rays, visible, &mut s.borrow_mut()))
+        let ons = (&ctx.patches.sampler(a), &ctx.patches.sampler(b));
+        let m = self.pairs_per_replicate();
+        SCRATCH.with(|s| self.pair_in(ctx, a, b, ons, m, rays, visible, &mut s.borrow_mut()))
     }
 
-    /// [`AreaMc::pair_with`] after the culling test, with the sampler of patch a.
+    /// [`AreaMc::pair_with`] after the culling test, with the samplers of patches a and b
+    /// and the sample pairs per replicate `m`.
     #[allow(clippy::too_many_arguments)]
     fn pair_in(
         &self,
         ctx: &Context,
         a: usize,
         b: usize,
-        on_a: &PatchSampler,
+        (on_a, on_b): (&PatchSampler, &PatchSampler),
+        m: usize,
         rays: &mut u64,
         visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
         s: &mut Scratch,
     ) -> Option<Entry> {
         let p = ctx.patches;
-        let m = self.pairs_per_replicate();
         let reps = self.replicates.max(2);
         let len = m * reps;
         s.resize(len);
@@ -200,7 +215,7 @@ impl AreaMc {
         self.unit_square(ctx.seed, a, b, m, reps, s);
         let (n_a, n_b) = (p.normal[a], p.normal[b]);
         on_a.points32(&s.u[0], &s.u[1], &mut s.x);
-        p.sampler(b).points32(&s.u[2], &s.u[3], &mut s.y);
+        on_b.points32(&s.u[2], &s.u[3], &mut s.y);
         let eps = ctx.vis.eps();
         kernels(&s.x, n_a, &s.y, n_b, &mut s.g, &mut s.ok);
         // The segment ray of every sample pair (AoS, as the queries take them); then, in
@@ -268,7 +283,8 @@ impl AreaMc {
                 // stratified too, not only its margins. Two 64-bit words per pair, 24 bits
                 // per coordinate.
                 self.cells(m, &mut s.cells);
-                let inv = 1.0 / self.grid() as f32;
+                // 1 / t, with t⁴ = m.
+                let inv = 1.0 / (m as f32).sqrt().sqrt().round();
                 let [c0, c1, c2, c3] = &s.cells;
                 let (c0, c1, c2, c3) = (&c0[..m], &c1[..m], &c2[..m], &c3[..m]);
                 let [u0, u1, u2, u3] = &mut s.u;
@@ -319,10 +335,10 @@ impl AreaMc {
     /// The integer coordinates of the cells of the stratified pattern's 4D grid, last one
     /// fastest, `m = t⁴` of them, into `cells` (unchanged when it already holds them).
     fn cells(&self, m: usize, cells: &mut [Vec<f32>; 4]) {
-        let t = self.grid();
         if cells[0].len() == m {
             return;
         }
+        let t = self.grid();
         cells.iter_mut().for_each(|c| c.clear());
         for a1 in 0..t {
             for a2 in 0..t {

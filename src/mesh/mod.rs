@@ -108,16 +108,7 @@ impl PatchSet {
     #[inline]
     pub fn sampler(&self, i: usize) -> PatchSampler {
         let (p, n) = self.corner_points(i);
-        if n == 3 {
-            return PatchSampler::new(p, Warp::Triangle);
-        }
-        let skew = p[0] + p[2] - p[1] - p[3];
-        if skew.length_squared() <= 1e-12 * (p[2] - p[0]).length_squared() {
-            return PatchSampler::new(p, Warp::Parallelogram);
-        }
-        let a1 = (p[1] - p[0]).cross(p[2] - p[0]).length() as f64;
-        let a2 = (p[2] - p[0]).cross(p[3] - p[0]).length() as f64;
-        PatchSampler::new(p, Warp::TwoTriangles(a1 / (a1 + a2)))
+        PatchSampler::of_corners(p, n)
     }
 
     /// Builds the patches of `scene` at the given resolution.
@@ -297,6 +288,21 @@ pub struct PatchSampler {
 }
 
 impl PatchSampler {
+    /// The sampler of a patch with these corners (`n` = 3 or 4 of them, as
+    /// [`PatchSet::corner_points`] returns them).
+    pub fn of_corners(p: [Vec3; 4], n: usize) -> PatchSampler {
+        if n == 3 {
+            return PatchSampler::new(p, Warp::Triangle);
+        }
+        let skew = p[0] + p[2] - p[1] - p[3];
+        if skew.length_squared() <= 1e-12 * (p[2] - p[0]).length_squared() {
+            return PatchSampler::new(p, Warp::Parallelogram);
+        }
+        let a1 = (p[1] - p[0]).cross(p[2] - p[0]).length() as f64;
+        let a2 = (p[2] - p[0]).cross(p[3] - p[0]).length() as f64;
+        PatchSampler::new(p, Warp::TwoTriangles(a1 / (a1 + a2)))
+    }
+
     fn new(p: [Vec3; 4], kind: Warp) -> PatchSampler {
         let (e, w) = match kind {
             Warp::Triangle => ([p[1] - p[0], p[2] - p[1], Vec3::ZERO, Vec3::ZERO], 1.0),
