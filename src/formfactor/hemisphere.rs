@@ -276,7 +276,18 @@ impl Hemisphere {
         // Entries in column order (the matrix assembly then finds each row sorted), mean
         // and variance of the replicate means from exact integer sums: with S = Σ c_r and
         // Q = Σ c_r², Var = (R Q - S²) / (R (R - 1) m²).
-        s.touched.sort_unstable();
+        let n = p.len();
+        if s.touched.len() * 8 >= n {
+            // Most patches were hit: a scan of the stamps lists them in order for less than
+            // a sort.
+            s.touched.clear();
+            let row_stamp = s.row;
+            s.touched.extend(
+                (0..n as u32).filter(|&j| s.stamp[j as usize] == row_stamp && j as usize != i),
+            );
+        } else {
+            s.touched.sort_unstable();
+        }
         let rf = reps as f64;
         let (inv_mr, inv_var) = (
             1.0 / (m as f64 * rf),
