@@ -63,9 +63,9 @@ pub fn record(ctx: &Context, choice: &EstimatorChoice) -> Recorded {
                     .into_par_iter()
                     .flat_map_iter(|i| {
                         let mut rays = Vec::new();
-                        est.row_with(ctx, i, &mut Row::default(), &mut |o, d| {
-                            rays.push((o, d));
-                            None
+                        est.row_with(ctx, i, &mut Row::default(), &mut |batch, out| {
+                            rays.extend_from_slice(batch);
+                            out.fill(visibility::NO_HIT);
                         });
                         rays
                     })

@@ -65,6 +65,70 @@ impl Pcg32 {
     }
 }
 
+/// A counter-based stream of 64-bit words: wyrand (Wang Yi's generator, the output
+/// function `mum(s, s ^ C)` of a Weyl sequence `s += C`), keyed like [`Pcg32::keyed`].
+///
+/// Each output depends on the key and its position only, through one 64 x 64 -> 128-bit
+/// multiply: no serial dependency beyond an add, so consecutive draws overlap in the
+/// pipeline. One word gives two `f32` uniforms ([`unit_f32`] of each half).
+#[derive(Clone, Copy, Debug)]
+pub struct Wy {
+    state: u64,
+}
+
+const WY_INC: u64 = 0xA076_1D64_78BD_642F;
+const WY_XOR: u64 = 0xE703_7ED1_A0B4_28DB;
+
+impl Wy {
+    /// A stream keyed on a seed and up to three integers (distinct from the [`Pcg32`]
+    /// stream of the same key).
+    pub fn keyed(seed: u64, a: u64, b: u64, c: u64) -> Wy {
+        Wy {
+            state: mix64(seed ^ mix64(a ^ mix64(b ^ mix64(c ^ 0x5741_5952_414E_4421)))),
+        }
+    }
+
+    /// Substream `r` of this stream: the same Weyl sequence started `r * 2^32` draws
+    /// further on, so substreams `r < 2^32` of up to `2^32` draws each never overlap (the
+    /// increment is odd, hence invertible modulo 2^64). Keyed on the stream's key and `r`.
+    #[inline]
+    pub fn substream(&self, r: u64) -> Wy {
+        Wy {
+            state: self
+                .state
+                .wrapping_add(r.wrapping_mul(WY_INC.wrapping_shl(32))),
+        }
+    }
+
+    /// Next 64 random bits.
+    #[inline(always)]
+    pub fn next_u64(&mut self) -> u64 {
+        self.state = self.state.wrapping_add(WY_INC);
+        let t = (self.state as u128) * ((self.state ^ WY_XOR) as u128);
+        ((t >> 64) as u64) ^ (t as u64)
+    }
+
+    /// Two uniform floats in [0, 1) (24 random bits each) from one draw.
+    #[inline(always)]
+    pub fn next_f32x2(&mut self) -> (f32, f32) {
+        let r = self.next_u64();
+        (unit_f32(r as u32), unit_f32((r >> 32) as u32))
+    }
+
+    /// Uniform integer in [0, n) from 32 bits (Lemire's multiply; bias below 2^-32 n).
+    #[inline(always)]
+    pub fn below(&mut self, n: u32) -> u32 {
+        ((self.next_u64() as u32 as u64 * n as u64) >> 32) as u32
+    }
+}
+
+/// The uniform float in [0, 1) made of the top 24 bits of `x` (every value a multiple of
+/// 2^-24, all exactly representable).
+#[inline(always)]
+pub fn unit_f32(x: u32) -> f32 {
+    (x >> 8) as f32 * (1.0 / 16_777_216.0)
+}
+
 /// Jittered samples on an `s x s` grid of strata of the unit square, in stratum order.
 pub fn jittered(rng: &mut Pcg32, s: usize, out: &mut Vec<(f64, f64)>) {
     out.clear();
@@ -113,6 +177,48 @@ mod tests {
             .collect();
         assert_eq!(a, b);
         assert_ne!(a, c);
+    }
+
+    #[test]
+    fn wy_streams_repeat_and_have_uniform_moments() {
+        let mut a = Wy::keyed(1, 2, 3, 4);
+        let mut b = Wy::keyed(1, 2, 3, 4);
+        let mut c = Wy::keyed(1, 3, 2, 4);
+        let (x, y, z) = (a.next_u64(), b.next_u64(), c.next_u64());
+        assert_eq!(x, y);
+        assert_ne!(x, z);
+        let mut r = Wy::keyed(7, 0, 0, 0);
+        let n = 100_000;
+        let mut xs = Vec::with_capacity(2 * n);
+        for _ in 0..n {
+            let (u, v) = r.next_f32x2();
+            assert!((0.0..1.0).contains(&u) && (0.0..1.0).contains(&v));
+            xs.push(u as f64);
+            xs.push(v as f64);
+        }
+        let m = xs.len() as f64;
+        let mean = xs.iter().sum::<f64>() / m;
+        let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / m;
+        // Lag-one correlation of the two halves of a word and of consecutive words.
+        let cov = xs
+            .windows(2)
+            .map(|w| (w[0] - 0.5) * (w[1] - 0.5))
+            .sum::<f64>()
+            / (m - 1.0);
+        assert!(
+            (mean - 0.5).abs() < 5.0 * (1.0f64 / 12.0 / m).sqrt(),
+            "{mean}"
+        );
+        assert!((var - 1.0 / 12.0).abs() < 2e-3, "{var}");
+        assert!(cov.abs() < 5.0 / 12.0 / m.sqrt(), "{cov}");
+        assert_eq!(unit_f32(u32::MAX), 1.0 - 1.0 / 16_777_216.0);
+        // Substream 0 is the stream itself; substream 1 starts 2^32 draws further on.
+        let base = Wy::keyed(1, 2, 3, 0);
+        assert_eq!(base.substream(0).next_u64(), base.clone().next_u64());
+        let mut far = base;
+        far.state = far.state.wrapping_add(WY_INC.wrapping_mul(1 << 32));
+        assert_eq!(base.substream(1).next_u64(), far.next_u64());
+        assert_ne!(base.substream(1).next_u64(), base.substream(2).next_u64());
     }
 
     #[test]

@@ -13,12 +13,18 @@
 //! grid of the unit square mapped by Shirley and Chiu's concentric disk map (1997) lifted to
 //! the hemisphere, strata paired by a random permutation. `R` independent replicates give
 //! the standard error of each entry.
+//!
+//! Sampling runs in `f32` over whole batches (structure of arrays, 24 random bits per
+//! coordinate from a counter-based [`Wy`] stream, a polynomial sine and cosine in the
+//! concentric map); hits are tallied per (patch, replicate) in dense per-thread arrays
+//! (`counts`, one slot per patch and replicate, reset lazily through a row stamp), so a row
+//! costs nothing per patch it does not hit.
 
 use glam::Vec3;
 
 use super::{Context, Entry, Estimator, Row};
-use crate::sampling::{jittered, shuffle, Pcg32};
-use crate::visibility::Hit;
+use crate::sampling::Wy;
+use crate::visibility::{Ray, NO_HIT};
 
 /// Hemisphere-shooting estimator.
 #[derive(Clone, Debug)]
@@ -83,20 +89,80 @@ impl Estimator for Hemisphere {
 
     fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
         let vis = ctx.vis;
-        self.row_with(ctx, i, row, &mut |org, dir| vis.first_hit_from(org, dir));
+        self.row_with(ctx, i, row, &mut |rays, out| vis.first_hits_from(rays, out));
     }
+}
+
+/// `sin x` and `cos x` for `|x| <= π/4`, by their Taylor polynomials to degree 11 and 12
+/// (truncation error below 2e-9, under half an `f32` ulp): no branches and no calls, so a
+/// loop of them runs four at a time.
+#[inline(always)]
+fn sin_cos_quarter(x: f32) -> (f32, f32) {
+    let x2 = x * x;
+    let sin = x
+        * (1.0
+            + x2 * (-1.0 / 6.0
+                + x2 * (1.0 / 120.0
+                    + x2 * (-1.0 / 5040.0 + x2 * (1.0 / 362_880.0 - x2 * (1.0 / 39_916_800.0))))));
+    let cos = 1.0
+        + x2 * (-0.5
+            + x2 * (1.0 / 24.0
+                + x2 * (-1.0 / 720.0
+                    + x2 * (1.0 / 40_320.0
+                        + x2 * (-1.0 / 3_628_800.0 + x2 * (1.0 / 479_001_600.0))))));
+    (sin, cos)
+}
+
+/// [`cosine_direction`] in `f32` for every `(u[k], v[k])`, into `out = [x, y, z]`
+/// (local frame, z up): the concentric map with the octant chosen by selects, not branches,
+/// and a polynomial sine and cosine ([`sin_cos_quarter`]).
+pub fn cosine_directions(u: &[f32], v: &[f32], out: &mut [Vec<f32>; 3]) {
+    let len = u.len();
+    let v = &v[..len];
+    let [x, y, z] = out;
+    let (x, y, z) = (&mut x[..len], &mut y[..len], &mut z[..len]);
+    for k in 0..len {
+        let (a, b) = (2.0 * u[k] - 1.0, 2.0 * v[k] - 1.0);
+        // |a| > |b|: r = a, φ = π/4 b/a; else r = b, φ = π/2 - π/4 a/b.
+        let first = a.abs() > b.abs();
+        let (r, num) = if first { (a, b) } else { (b, a) };
+        let q = if r != 0.0 { num / r } else { 0.0 };
+        let (sin, cos) = sin_cos_quarter(std::f32::consts::FRAC_PI_4 * q);
+        let (c, s) = if first { (cos, sin) } else { (sin, cos) };
+        x[k] = r * c;
+        y[k] = r * s;
+        z[k] = (1.0 - r * r).max(0.0).sqrt();
+    }
+}
+
+/// `floor(x n / 2^32)`: an integer in [0, n) from 32 random bits `x`.
+#[inline(always)]
+fn below(x: u32, n: u32) -> usize {
+    ((x as u64 * n as u64) >> 32) as usize
 }
 
 /// Per-thread buffers of [`Hemisphere::row_with`], kept between rows.
 #[derive(Default)]
 struct Scratch {
-    pos: Vec<(f64, f64)>,
-    dirs: Vec<(f64, f64)>,
-    /// Rays `(origin, direction)` of one replicate.
-    rays: Vec<(Vec3, Vec3)>,
-    /// `(patch hit, replicate)` of the rays that hit the front of another patch.
-    keyed: Vec<(u32, u32)>,
+    /// Cells of the `s x s` grid, `(column, row)` as floats, for `cells_of` strata.
+    cells: [Vec<f32>; 2],
+    cells_of: usize,
+    /// Random permutation pairing position strata with direction strata.
+    perm: Vec<u32>,
+    /// Unit-square coordinates of positions and of directions, one replicate's worth.
+    u: [Vec<f32>; 4],
+    /// Points on the patch and local directions.
+    x: [Vec<f32>; 3],
+    d: [Vec<f32>; 3],
+    /// Rays `(origin, direction)` of one replicate, and what they hit.
+    rays: Vec<Ray>,
+    hits: Vec<u32>,
+    /// Hit tallies: `counts[j * reps + r]` is valid when `stamp[j] == row`, the running row
+    /// number of this thread; `touched` lists those `j` in first-hit order.
     counts: Vec<u32>,
+    stamp: Vec<u32>,
+    row: u32,
+    touched: Vec<u32>,
 }
 
 thread_local! {
@@ -104,18 +170,19 @@ thread_local! {
 }
 
 impl Hemisphere {
-    /// Row `i` with `first_hit(origin, direction)` answering the closest-hit query for the
-    /// ray from `origin` (already offset off patch i, see
-    /// [`crate::visibility::Visibility::first_hit_origin`]) in unit `direction`; the rays
-    /// asked for do not depend on the answers, so a recorder sees the exact ray set.
+    /// Row `i` with `first_hits(rays, out)` answering the closest-hit query for a batch of
+    /// rays `(origin, unit direction)` (origins already offset off patch i, see
+    /// [`crate::visibility::Visibility::first_hit_origin`]): `out[k]` is the patch ray k hits
+    /// first, or [`NO_HIT`]. One batch per replicate; the rays asked for do not depend on the
+    /// answers, so a recorder sees the exact ray set.
     pub fn row_with(
         &self,
         ctx: &Context,
         i: usize,
         row: &mut Row,
-        first_hit: &mut dyn FnMut(Vec3, Vec3) -> Option<Hit>,
+        first_hits: &mut dyn FnMut(&[Ray], &mut [u32]),
     ) {
-        SCRATCH.with(|s| self.row_in(ctx, i, row, first_hit, &mut s.borrow_mut()));
+        SCRATCH.with(|s| self.row_in(ctx, i, row, first_hits, &mut s.borrow_mut()));
     }
 
     fn row_in(
@@ -123,71 +190,183 @@ impl Hemisphere {
         ctx: &Context,
         i: usize,
         row: &mut Row,
-        first_hit: &mut dyn FnMut(Vec3, Vec3) -> Option<Hit>,
+        first_hits: &mut dyn FnMut(&[Ray], &mut [u32]),
         s: &mut Scratch,
     ) {
         let p = ctx.patches;
         let reps = self.replicates.max(2);
-        let m = self.strata * self.strata;
+        let st = self.strata.max(1);
+        let m = st * st;
+        s.prepare(st, m, p.len(), reps);
         let n_i = p.normal[i];
         let (t, b) = basis(n_i);
+        let off = n_i * ctx.vis.eps();
         let on_i = p.sampler(i);
-        s.keyed.clear();
+        let inv = 1.0 / st as f32;
+        // A new row stamp: every tally of an earlier row is stale.
+        s.row = s.row.wrapping_add(1);
+        if s.row == 0 {
+            s.stamp.iter_mut().for_each(|v| *v = 0);
+            s.row = 1;
+        }
+        s.touched.clear();
+        // One replicate at a time (its buffers stay in the L1 cache next to Embree's).
         for r in 0..reps {
-            let mut rng = Pcg32::keyed(ctx.seed, i as u64, u64::MAX, r as u64);
-            jittered(&mut rng, self.strata, &mut s.pos);
-            jittered(&mut rng, self.strata, &mut s.dirs);
-            shuffle(&mut rng, &mut s.dirs);
-            // Sample the replicate's rays first, then trace them in a tight loop.
-            s.rays.clear();
-            s.rays.extend((0..m).map(|k| {
-                let x = on_i.point(s.pos[k].0, s.pos[k].1);
-                let l = cosine_direction(s.dirs[k].0, s.dirs[k].1);
-                let w = (t * l.x + b * l.y + n_i * l.z).normalize();
-                (ctx.vis.first_hit_origin(x, n_i, w), w)
-            }));
-            for &(org, w) in &s.rays {
-                if let Some(h) = first_hit(org, w) {
-                    if h.patch as usize != i && p.normal[h.patch as usize].dot(w) < 0.0 {
-                        s.keyed.push((h.patch, r as u32));
-                    }
+            // Unit-square coordinates: a jittered position in stratum k, and a jittered
+            // direction in stratum perm[k] of a fresh random permutation (Fisher-Yates),
+            // from the (seed, i, replicate) stream.
+            let mut rng = Wy::keyed(ctx.seed, i as u64, u64::MAX, r as u64);
+            let perm = &mut s.perm[..m];
+            for (k, q) in perm.iter_mut().enumerate() {
+                *q = k as u32;
+            }
+            // Two 32-bit draws per word (Lemire's multiply, bias below 2^-32 m).
+            let mut k = m - 1;
+            while k >= 1 {
+                let w = rng.next_u64();
+                perm.swap(k, below(w as u32, k as u32 + 1));
+                if k >= 2 {
+                    perm.swap(k - 1, below((w >> 32) as u32, k as u32));
                 }
+                k = k.saturating_sub(2);
+            }
+            let [c0, c1] = &s.cells;
+            let (c0, c1) = (&c0[..m], &c1[..m]);
+            let [u0, u1, u2, u3] = &mut s.u;
+            let (u0, u1, u2, u3) = (&mut u0[..m], &mut u1[..m], &mut u2[..m], &mut u3[..m]);
+            for k in 0..m {
+                let (j0, j1) = rng.next_f32x2();
+                let (j2, j3) = rng.next_f32x2();
+                let c = perm[k] as usize;
+                u0[k] = (c0[k] + j0) * inv;
+                u1[k] = (c1[k] + j1) * inv;
+                u2[k] = (c0[c] + j2) * inv;
+                u3[k] = (c1[c] + j3) * inv;
+            }
+            on_i.points32(&s.u[0][..m], &s.u[1][..m], &mut s.x);
+            cosine_directions(&s.u[2][..m], &s.u[3][..m], &mut s.d);
+            // World directions (unit up to rounding: the basis is orthonormal), origins
+            // offset along the normal: every direction leaves the front side (z >= 0).
+            let [x0, x1, x2] = &s.x;
+            let (x0, x1, x2) = (&x0[..m], &x1[..m], &x2[..m]);
+            let [d0, d1, d2] = &s.d;
+            let (d0, d1, d2) = (&d0[..m], &d1[..m], &d2[..m]);
+            for (k, ray) in s.rays[..m].iter_mut().enumerate() {
+                let w = t * d0[k] + b * d1[k] + n_i * d2[k];
+                *ray = (Vec3::new(x0[k], x1[k], x2[k]) + off, w);
+            }
+            first_hits(&s.rays[..m], &mut s.hits[..m]);
+            // Count front-face hits per (patch, replicate) in the dense per-thread tallies.
+            let (stamp, counts) = (&mut s.stamp[..], &mut s.counts[..]);
+            for (&j, ray) in s.hits[..m].iter().zip(&s.rays[..m]) {
+                if j == NO_HIT || j as usize == i || p.normal[j as usize].dot(ray.1) >= 0.0 {
+                    continue;
+                }
+                let ju = j as usize;
+                if stamp[ju] != s.row {
+                    stamp[ju] = s.row;
+                    counts[ju * reps..(ju + 1) * reps].fill(0);
+                    s.touched.push(j);
+                }
+                counts[ju * reps + r] += 1;
             }
         }
         row.rays += (m * reps) as u64;
-        // Count hits per (patch, replicate).
-        s.keyed.sort_unstable();
-        let inv_m = 1.0 / m as f64;
-        s.counts.clear();
-        s.counts.resize(reps, 0);
-        let keyed = &s.keyed;
-        let mut k = 0;
-        while k < keyed.len() {
-            let j = keyed[k].0;
-            s.counts.iter_mut().for_each(|c| *c = 0);
-            while k < keyed.len() && keyed[k].0 == j {
-                s.counts[keyed[k].1 as usize] += 1;
-                k += 1;
-            }
-            let avg = s.counts.iter().map(|&c| c as f64 * inv_m).sum::<f64>() / reps as f64;
-            let var = s
-                .counts
-                .iter()
-                .map(|&c| (c as f64 * inv_m - avg).powi(2))
-                .sum::<f64>()
-                / (reps - 1) as f64;
+        let counts = &s.counts;
+        // Entries in column order (the matrix assembly then finds each row sorted), mean
+        // and variance of the replicate means from exact integer sums: with S = Σ c_r and
+        // Q = Σ c_r², Var = (R Q - S²) / (R (R - 1) m²).
+        let n = p.len();
+        if s.touched.len() * 8 >= n {
+            // Most patches were hit: a scan of the stamps lists them in order for less than
+            // a sort.
+            s.touched.clear();
+            let row_stamp = s.row;
+            s.touched.extend(
+                (0..n as u32).filter(|&j| s.stamp[j as usize] == row_stamp && j as usize != i),
+            );
+        } else {
+            s.touched.sort_unstable();
+        }
+        let rf = reps as f64;
+        let (inv_mr, inv_var) = (
+            1.0 / (m as f64 * rf),
+            1.0 / (rf * (rf - 1.0) * (m as f64).powi(2)),
+        );
+        for &j in &s.touched {
+            let c = &counts[j as usize * reps..(j as usize + 1) * reps];
+            let (sum, sq) = c.iter().fold((0u64, 0u64), |(a, q), &c| {
+                (a + c as u64, q + c as u64 * c as u64)
+            });
+            let var = (reps as u64 * sq - sum * sum) as f64 * inv_var;
             row.entries.push(Entry {
                 j,
-                f: avg,
-                se: (var / reps as f64).sqrt(),
+                f: sum as f64 * inv_mr,
+                se: (var / rf).sqrt(),
             });
         }
+    }
+}
+
+impl Scratch {
+    /// Sizes the buffers for `len` rays (one replicate), `st x st` strata per replicate,
+    /// `reps` replicates and a scene of `n` patches.
+    fn prepare(&mut self, st: usize, len: usize, n: usize, reps: usize) {
+        if self.stamp.len() < n {
+            self.stamp.resize(n, 0);
+        }
+        if self.counts.len() < n * reps {
+            self.counts.resize(n * reps, 0);
+        }
+        if self.cells_of != st {
+            let [c0, c1] = &mut self.cells;
+            c0.clear();
+            c1.clear();
+            for b in 0..st {
+                for a in 0..st {
+                    c0.push(a as f32);
+                    c1.push(b as f32);
+                }
+            }
+            self.cells_of = st;
+        }
+        self.perm.resize(st * st, 0);
+        for v in self.u.iter_mut().chain(&mut self.x).chain(&mut self.d) {
+            v.resize(len, 0.0);
+        }
+        self.hits.resize(len, NO_HIT);
+        self.rays.resize(len, (Vec3::ZERO, Vec3::ZERO));
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sampling::Pcg32;
+
+    #[test]
+    fn f32_directions_match_the_f64_map() {
+        let mut rng = Pcg32::keyed(5, 0, 0, 0);
+        let mut uv: Vec<(f32, f32)> = (0..1000)
+            .map(|_| (rng.next_f64() as f32, rng.next_f64() as f32))
+            .collect();
+        uv.extend([(0.5, 0.5), (0.0, 0.0), (1.0, 0.5), (0.5, 0.0), (0.25, 0.75)]);
+        let (u, v): (Vec<f32>, Vec<f32>) = uv.iter().copied().unzip();
+        let mut out = [vec![0.0; u.len()], vec![0.0; u.len()], vec![0.0; u.len()]];
+        cosine_directions(&u, &v, &mut out);
+        for (k, &(a, b)) in uv.iter().enumerate() {
+            let want = cosine_direction(a as f64, b as f64);
+            let got = Vec3::new(out[0][k], out[1][k], out[2][k]);
+            // z = sqrt(1 - r²) is ill-conditioned at the rim (r -> 1): f32 rounding of x, y
+            // gives up to ~3e-4 there.
+            let close = (want.x - got.x).abs() < 1e-6 && (want.y - got.y).abs() < 1e-6;
+            assert!(
+                close && (want.z - got.z).abs() < 5e-4,
+                "({a}, {b}): {want} vs {got}"
+            );
+            assert!((got.length() - 1.0).abs() < 1e-5 && got.z >= 0.0);
+        }
+    }
 
     #[test]
     fn basis_is_orthonormal() {

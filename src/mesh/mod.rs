@@ -108,25 +108,7 @@ impl PatchSet {
     #[inline]
     pub fn sampler(&self, i: usize) -> PatchSampler {
         let (p, n) = self.corner_points(i);
-        if n == 3 {
-            return PatchSampler {
-                p,
-                kind: Warp::Triangle,
-            };
-        }
-        let skew = p[0] + p[2] - p[1] - p[3];
-        if skew.length_squared() <= 1e-12 * (p[2] - p[0]).length_squared() {
-            return PatchSampler {
-                p,
-                kind: Warp::Parallelogram,
-            };
-        }
-        let a1 = (p[1] - p[0]).cross(p[2] - p[0]).length() as f64;
-        let a2 = (p[2] - p[0]).cross(p[3] - p[0]).length() as f64;
-        PatchSampler {
-            p,
-            kind: Warp::TwoTriangles(a1 / (a1 + a2)),
-        }
+        PatchSampler::of_corners(p, n)
     }
 
     /// Builds the patches of `scene` at the given resolution.
@@ -293,9 +275,63 @@ enum Warp {
 pub struct PatchSampler {
     p: [Vec3; 4],
     kind: Warp,
+    /// Set-up of [`PatchSampler::point32`]: the first corner, the edge vectors `e1`, `e2` of
+    /// the first triangle (`a + sqrt(u) e1 + sqrt(u) v e2`) or of the parallelogram
+    /// (`a + u e1 + v e2`), for a general quad the differences between the second
+    /// triangle's edges and the first's, the split `w` of `u` between the two triangles, and
+    /// the scale that maps the first part of `u` back to [0, 1] with its difference from the
+    /// second part's.
+    e: [Vec3; 4],
+    w: f32,
+    scale: f32,
+    dscale: f32,
 }
 
 impl PatchSampler {
+    /// The sampler of a patch with these corners (`n` = 3 or 4 of them, as
+    /// [`PatchSet::corner_points`] returns them).
+    pub fn of_corners(p: [Vec3; 4], n: usize) -> PatchSampler {
+        if n == 3 {
+            return PatchSampler::new(p, Warp::Triangle);
+        }
+        let skew = p[0] + p[2] - p[1] - p[3];
+        if skew.length_squared() <= 1e-12 * (p[2] - p[0]).length_squared() {
+            return PatchSampler::new(p, Warp::Parallelogram);
+        }
+        let a1 = (p[1] - p[0]).cross(p[2] - p[0]).length() as f64;
+        let a2 = (p[2] - p[0]).cross(p[3] - p[0]).length() as f64;
+        PatchSampler::new(p, Warp::TwoTriangles(a1 / (a1 + a2)))
+    }
+
+    fn new(p: [Vec3; 4], kind: Warp) -> PatchSampler {
+        let (e, w) = match kind {
+            Warp::Triangle => ([p[1] - p[0], p[2] - p[1], Vec3::ZERO, Vec3::ZERO], 1.0),
+            Warp::Parallelogram => ([p[1] - p[0], p[3] - p[0], Vec3::ZERO, Vec3::ZERO], 1.0),
+            Warp::TwoTriangles(w) => (
+                // The second triangle's edges as differences from the first's.
+                [
+                    p[1] - p[0],
+                    p[2] - p[1],
+                    (p[2] - p[0]) - (p[1] - p[0]),
+                    (p[3] - p[2]) - (p[2] - p[1]),
+                ],
+                w as f32,
+            ),
+        };
+        PatchSampler {
+            p,
+            kind,
+            e,
+            w,
+            scale: 1.0 / w,
+            dscale: if w < 1.0 {
+                1.0 / (1.0 - w) - 1.0 / w
+            } else {
+                0.0
+            },
+        }
+    }
+
     /// The point of `(u, v)` in the unit square.
     #[inline]
     pub fn point(&self, u: f64, v: f64) -> Vec3 {
@@ -311,6 +347,72 @@ impl PatchSampler {
                     sample_triangle(p[0], p[1], p[2], u / w, v)
                 } else {
                     sample_triangle(p[0], p[2], p[3], ((u - w) / (1.0 - w)).min(1.0), v)
+                }
+            }
+        }
+    }
+
+    /// The same warp as [`PatchSampler::point`] in `f32`, without branches on `(u, v)`
+    /// (the triangle of a general quad is selected, not branched to), for the inner loops
+    /// of the area estimators.
+    #[inline(always)]
+    pub fn point32(&self, u: f32, v: f32) -> Vec3 {
+        let (a, e) = (self.p[0], &self.e);
+        match self.kind {
+            Warp::Parallelogram => a + e[0] * u + e[1] * v,
+            Warp::Triangle => {
+                let su = u.sqrt();
+                a + e[0] * su + e[1] * (su * v)
+            }
+            Warp::TwoTriangles(_) => {
+                let w = self.w;
+                // The triangle is picked arithmetically (f = 0 or 1), not by a branch the
+                // predictor would miss half the time (LLVM turns selects into branches).
+                let f = (u >= w) as u32 as f32;
+                let su = ((u - f * w) * (self.scale + f * self.dscale))
+                    .min(1.0)
+                    .sqrt();
+                a + (e[0] + e[2] * f) * su + (e[1] + e[3] * f) * (su * v)
+            }
+        }
+    }
+
+    /// [`PatchSampler::point32`] of every `(u[k], v[k])`, into `out = [x, y, z]` (at least
+    /// as long as `u`): one loop per warp, without branches inside, so the compiler
+    /// runs it four points at a time.
+    pub fn points32(&self, u: &[f32], v: &[f32], out: &mut [Vec<f32>; 3]) {
+        let len = u.len();
+        let v = &v[..len];
+        let [x, y, z] = out;
+        let (x, y, z) = (&mut x[..len], &mut y[..len], &mut z[..len]);
+        let (a, e) = (self.p[0], self.e);
+        match self.kind {
+            Warp::Parallelogram => {
+                for k in 0..len {
+                    let (u, v) = (u[k], v[k]);
+                    x[k] = a.x + e[0].x * u + e[1].x * v;
+                    y[k] = a.y + e[0].y * u + e[1].y * v;
+                    z[k] = a.z + e[0].z * u + e[1].z * v;
+                }
+            }
+            Warp::Triangle => {
+                for k in 0..len {
+                    let su = u[k].sqrt();
+                    let sv = su * v[k];
+                    x[k] = a.x + e[0].x * su + e[1].x * sv;
+                    y[k] = a.y + e[0].y * su + e[1].y * sv;
+                    z[k] = a.z + e[0].z * su + e[1].z * sv;
+                }
+            }
+            Warp::TwoTriangles(_) => {
+                let (w, scale, dscale) = (self.w, self.scale, self.dscale);
+                for k in 0..len {
+                    let f = (u[k] >= w) as u32 as f32;
+                    let su = ((u[k] - f * w) * (scale + f * dscale)).min(1.0).sqrt();
+                    let sv = su * v[k];
+                    x[k] = a.x + (e[0].x + e[2].x * f) * su + (e[1].x + e[3].x * f) * sv;
+                    y[k] = a.y + (e[0].y + e[2].y * f) * su + (e[1].y + e[3].y * f) * sv;
+                    z[k] = a.z + (e[0].z + e[2].z * f) * su + (e[1].z + e[3].z * f) * sv;
                 }
             }
         }
@@ -378,6 +480,44 @@ mod tests {
         assert!((a - b).abs() < 1e-6 * a, "{a} vs {b}");
         assert!(fine.len() > 500);
         fine.validate().unwrap();
+    }
+
+    #[test]
+    fn f32_warp_matches_the_f64_warp() {
+        // The Cornell walls are slightly non-planar quads (two-triangle warp); the plates
+        // are parallelograms; a triangle face covers the third warp.
+        let cornell = builtin::load("cornell").unwrap().unwrap();
+        let mut tri = builtin::load("plates-parallel").unwrap().unwrap();
+        let f = tri.faces[0];
+        tri.faces[0].corners = [f.corners[0], f.corners[1], f.corners[2], NONE];
+        let mut kinds = Vec::new();
+        for scene in [&cornell, &tri] {
+            let set = PatchSet::build(scene, Resolution::MaxEdge(1e4)).unwrap();
+            for i in 0..set.len() {
+                let s = set.sampler(i);
+                kinds.push(std::mem::discriminant(&s.kind));
+                let scale = set.diagonal as f32;
+                let uv = [(0.0, 0.0), (0.3, 0.9), (0.7, 0.2), (0.999, 0.5), (0.5, 0.0)];
+                let (us, vs): (Vec<f32>, Vec<f32>) = uv.iter().copied().unzip();
+                let mut out = [vec![0.0; 5], vec![0.0; 5], vec![0.0; 5]];
+                s.points32(&us, &vs, &mut out);
+                for (k, &(u, v)) in uv.iter().enumerate() {
+                    let (a, b) = (s.point(u as f64, v as f64), s.point32(u, v));
+                    let c = Vec3::new(out[0][k], out[1][k], out[2][k]);
+                    assert!(
+                        (a - b).length() <= 1e-6 * scale,
+                        "patch {i} ({u}, {v}): {a} vs {b}"
+                    );
+                    assert!(
+                        (a - c).length() <= 1e-6 * scale,
+                        "patch {i} ({u}, {v}): {a} vs {c}"
+                    );
+                }
+            }
+        }
+        kinds.sort_by_key(|k| format!("{k:?}"));
+        kinds.dedup();
+        assert_eq!(kinds.len(), 3, "all three warps exercised");
     }
 
     #[test]

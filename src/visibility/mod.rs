@@ -26,6 +26,12 @@ pub const OFFSET_REL: f32 = 1e-5;
 /// [`Visibility::segment_ray`].
 pub type SegmentRay = (Vec3, Vec3, f32);
 
+/// A ray `(origin, unit direction)` for closest-hit queries.
+pub type Ray = (Vec3, Vec3);
+
+/// The patch id [`Visibility::first_hits_from`] reports for a ray that hits nothing.
+pub const NO_HIT: u32 = u32::MAX;
+
 /// What a ray hit first.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Hit {
@@ -123,6 +129,18 @@ impl Visibility {
                 patch: self.tri_patch[h.prim as usize],
                 t: h.t,
             })
+    }
+
+    /// The patch each ray `(origin, unit direction)` hits first ([`Visibility::first_hit_from`]
+    /// in a loop), or [`NO_HIT`], into `out`.
+    #[inline]
+    pub fn first_hits_from(&self, rays: &[Ray], out: &mut [u32]) {
+        for (o, r) in out.iter_mut().zip(rays) {
+            *o = match self.scene.intersect1(r.0, r.1, 0.0, f32::INFINITY) {
+                Some(h) => self.tri_patch[h.prim as usize],
+                None => NO_HIT,
+            };
+        }
     }
 
     /// First patch hit by the ray leaving `x` (normal `n_x`) in unit direction `dir`.
