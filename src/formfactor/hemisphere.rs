@@ -26,6 +26,9 @@ use super::{Context, Entry, Estimator, Row};
 use crate::sampling::Wy;
 use crate::visibility::{Ray, NO_HIT};
 
+/// Fraction of an origin's distance to the patch centroid by which it is pulled inward.
+const PULL: f32 = 1.0 / 16384.0;
+
 /// Hemisphere-shooting estimator.
 #[derive(Clone, Debug)]
 pub struct Hemisphere {
@@ -201,6 +204,12 @@ impl Hemisphere {
         let n_i = p.normal[i];
         let (t, b) = basis(n_i);
         let off = n_i * ctx.vis.eps();
+        // Origins are pulled toward the centroid by PULL of their distance: a jittered point
+        // can round onto the patch's edge, i.e. onto the plane of the wall meeting it there,
+        // and a ray from there into that wall starts at t = 0 and escapes through it (one
+        // ray in 6.3 M leaked so on the 32 x 32 cube). The pull keeps origins strictly
+        // inside the patch, a relative shift of the sampled region far below the noise.
+        let centroid = p.centroid[i];
         let on_i = p.sampler(i);
         let inv = 1.0 / st as f32;
         // A new row stamp: every tally of an earlier row is stale.
@@ -253,7 +262,8 @@ impl Hemisphere {
             let (d0, d1, d2) = (&d0[..m], &d1[..m], &d2[..m]);
             for (k, ray) in s.rays[..m].iter_mut().enumerate() {
                 let w = t * d0[k] + b * d1[k] + n_i * d2[k];
-                *ray = (Vec3::new(x0[k], x1[k], x2[k]) + off, w);
+                let x = Vec3::new(x0[k], x1[k], x2[k]);
+                *ray = (x + (centroid - x) * PULL + off, w);
             }
             first_hits(&s.rays[..m], &mut s.hits[..m]);
             // Count front-face hits per (patch, replicate) in the dense per-thread tallies.
