@@ -229,6 +229,29 @@ impl EmbreeScene {
         ray.tfar < 0.0
     }
 
+    /// [`EmbreeScene::occluded16`] of segment rays `(origin, direction, tfar)` with
+    /// `tnear = 0`, filled straight into the packet.
+    pub fn occluded16_segments(&self, rays: &[(Vec3, Vec3, f32)], out: &mut [bool]) {
+        debug_assert!(rays.len() <= 16 && out.len() >= rays.len());
+        let mut packet = sys::RTCRay16::default();
+        let mut valid = Valid16([0i32; 16]);
+        for (k, (o, d, tf)) in rays.iter().enumerate() {
+            valid.0[k] = -1;
+            packet.org_x[k] = o.x;
+            packet.org_y[k] = o.y;
+            packet.org_z[k] = o.z;
+            packet.dir_x[k] = d.x;
+            packet.dir_y[k] = d.y;
+            packet.dir_z[k] = d.z;
+            packet.tfar[k] = *tf;
+        }
+        // SAFETY: as in `occluded16`: committed scene, 64-byte aligned packet and mask.
+        unsafe { sys::rtcOccluded16(valid.0.as_ptr(), self.scene, &mut packet, null_mut()) };
+        for (o, tfar) in out.iter_mut().zip(packet.tfar).take(rays.len()) {
+            *o = tfar < 0.0;
+        }
+    }
+
     /// Occlusion for up to 16 rays at once (`rtcOccluded16`). Each ray is
     /// `(origin, direction, tnear, tfar)`; `out[k]` is set to true when ray k is blocked.
     pub fn occluded16(&self, rays: &[(Vec3, Vec3, f32, f32)], out: &mut [bool]) {
