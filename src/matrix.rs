@@ -101,6 +101,13 @@ impl CsrBuilder {
         }
     }
 
+    /// Room for `additional` more entries.
+    pub fn reserve(&mut self, additional: usize) {
+        self.indices.reserve(additional);
+        self.data.reserve(additional);
+        self.se.reserve(additional);
+    }
+
     /// Appends the next row (entries in any order; duplicates are merged).
     pub fn push_row(&mut self, row: &mut Vec<Entry>) {
         row.sort_unstable_by_key(|e| e.j);

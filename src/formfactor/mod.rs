@@ -111,6 +111,8 @@ fn rows_par(
             row.entries.clear();
             row.rays = 0;
             est.row(ctx, i, row);
+            // Sorted here, in parallel, so that the serial assembly only copies.
+            row.entries.sort_unstable_by_key(|e| e.j);
             let d = done.fetch_add(1, Ordering::Relaxed) + 1;
             if d % 64 == 0 || d == n {
                 progress(d);
@@ -174,6 +176,7 @@ pub fn compute_timed(
             rays += r;
             split.rows += t.elapsed().as_secs_f64();
             let t = Instant::now();
+            csr.reserve(rows.iter().map(Vec::len).sum());
             for mut row in rows {
                 csr.push_row(&mut row);
             }
