@@ -469,8 +469,13 @@ pub fn run() -> Result<()> {
             let p = &s.provenance;
             let d = &s.diagnostics;
             println!(
-                "factors of `{}`: {} patches, {} stored, {} rays by {} in {:.3}s",
-                p.scene, p.patches, p.nnz, p.rays, p.estimator, p.seconds
+                "factors of `{}`: {} patches, {} stored, {} rays by {} in {}s",
+                p.scene,
+                p.patches,
+                p.nnz,
+                p.rays,
+                p.estimator,
+                significant(p.seconds, 4)
             );
             println!(
                 "row sums in [{:.5}, {:.5}], reciprocity error <= {:.1e}; peak memory {}",
@@ -557,4 +562,13 @@ pub fn run() -> Result<()> {
             Ok(())
         }
     }
+}
+
+/// `x` with `digits` significant digits (at least), in plain notation: 17.52, 0.0004120.
+fn significant(x: f64, digits: i32) -> String {
+    if x <= 0.0 || !x.is_finite() {
+        return format!("{x}");
+    }
+    let decimals = (digits - 1 - x.log10().floor() as i32).max(0) as usize;
+    format!("{x:.decimals$}")
 }
