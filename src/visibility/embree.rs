@@ -231,35 +231,32 @@ impl EmbreeScene {
 
     /// [`EmbreeScene::occluded16`] of segment rays `(origin, direction, tfar)` with
     /// `tnear = 0`, filled straight into the packet.
+    #[inline]
     pub fn occluded16_segments(&self, rays: &[(Vec3, Vec3, f32)], out: &mut [bool]) {
-        debug_assert!(rays.len() <= 16 && out.len() >= rays.len());
-        let mut packet = sys::RTCRay16::default();
-        let mut valid = Valid16([0i32; 16]);
-        for (k, (o, d, tf)) in rays.iter().enumerate() {
-            valid.0[k] = -1;
-            packet.org_x[k] = o.x;
-            packet.org_y[k] = o.y;
-            packet.org_z[k] = o.z;
-            packet.dir_x[k] = d.x;
-            packet.dir_y[k] = d.y;
-            packet.dir_z[k] = d.z;
-            packet.tfar[k] = *tf;
-        }
-        // SAFETY: as in `occluded16`: committed scene, 64-byte aligned packet and mask.
-        unsafe { sys::rtcOccluded16(valid.0.as_ptr(), self.scene, &mut packet, null_mut()) };
-        for (o, tfar) in out.iter_mut().zip(packet.tfar).take(rays.len()) {
-            *o = tfar < 0.0;
-        }
+        self.occluded16_with(rays.len(), |k| (rays[k].0, rays[k].1, 0.0, rays[k].2), out);
     }
 
     /// Occlusion for up to 16 rays at once (`rtcOccluded16`). Each ray is
     /// `(origin, direction, tnear, tfar)`; `out[k]` is set to true when ray k is blocked.
+    #[inline]
     pub fn occluded16(&self, rays: &[(Vec3, Vec3, f32, f32)], out: &mut [bool]) {
-        debug_assert!(rays.len() <= 16 && out.len() >= rays.len());
+        self.occluded16_with(rays.len(), |k| rays[k], out);
+    }
+
+    /// One `rtcOccluded16` over `n <= 16` rays given by `ray(k)`.
+    #[inline]
+    fn occluded16_with(
+        &self,
+        n: usize,
+        ray: impl Fn(usize) -> (Vec3, Vec3, f32, f32),
+        out: &mut [bool],
+    ) {
+        debug_assert!(n <= 16 && out.len() >= n);
         let mut packet = sys::RTCRay16::default();
         debug_assert_eq!(std::ptr::addr_of!(packet) as usize % 64, 0);
         let mut valid = Valid16([0i32; 16]);
-        for (k, (o, d, tn, tf)) in rays.iter().enumerate() {
+        for k in 0..n.min(16) {
+            let (o, d, tn, tf) = ray(k);
             valid.0[k] = -1;
             packet.org_x[k] = o.x;
             packet.org_y[k] = o.y;
@@ -267,15 +264,15 @@ impl EmbreeScene {
             packet.dir_x[k] = d.x;
             packet.dir_y[k] = d.y;
             packet.dir_z[k] = d.z;
-            packet.tnear[k] = *tn;
-            packet.tfar[k] = *tf;
+            packet.tnear[k] = tn;
+            packet.tfar[k] = tf;
         }
         // SAFETY: the scene is committed; the packet and the valid mask are 64-byte aligned
         // as rtcOccluded16 requires (bindgen keeps RTC_ALIGN(64) on RTCRay16, checked by the
         // `packet_types_are_64_byte_aligned` test; `Valid16` is aligned by hand); lanes with
         // valid = 0 are ignored.
         unsafe { sys::rtcOccluded16(valid.0.as_ptr(), self.scene, &mut packet, null_mut()) };
-        for (o, tfar) in out.iter_mut().zip(packet.tfar).take(rays.len()) {
+        for (o, tfar) in out.iter_mut().zip(packet.tfar).take(n) {
             *o = tfar < 0.0;
         }
     }
