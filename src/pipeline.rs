@@ -380,7 +380,7 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
             (ff, embree)
         }
     };
-    let (ff, repair_report) = timer.run("repair", 0, || repair::repair(&ff, cfg.repair));
+    let (ff, repair_report) = timer.run("repair", 0, || repair::apply(ff, cfg.repair));
     let (diagnostics, max_row_sum_stderr) = timer.run("diagnostics", 0, || {
         let worst = (0..ff.len())
             .map(|i| ff.row_sum_stderr(i))
@@ -479,7 +479,7 @@ pub fn factors(
     })?;
     let (ff, stages, _) = form_factors(&patches, estimator, seed, obs)?;
     timer.stages.extend(stages);
-    let (ff, repair_report) = repair::repair(&ff, repair);
+    let (ff, repair_report) = repair::apply(ff, repair);
     let diagnostics = ff.diagnostics();
     let provenance = timer.run("write", 0, || store::write(out_dir, &patches, &ff))?;
     Ok(FactorsSummary {

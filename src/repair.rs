@@ -135,6 +135,23 @@ pub struct RepairReport {
     pub rounds: usize,
 }
 
+/// [`repair`] taking the matrix: with [`Repair::None`] it is returned as it is, with only
+/// the bounds checked (no copy: at 10⁵ patches a copy is gigabytes).
+pub fn apply(ff: FormFactors, how: Repair) -> (FormFactors, RepairReport) {
+    if how != Repair::None {
+        return repair(&ff, how);
+    }
+    let before = check(&ff);
+    let report = RepairReport {
+        repair: how,
+        after: before.clone(),
+        before,
+        max_shift_sigmas: 0.0,
+        rounds: 0,
+    };
+    (ff, report)
+}
+
 /// Applies `how` to a copy of `ff` (same sparsity pattern) and reports bounds before and
 /// after.
 pub fn repair(ff: &FormFactors, how: Repair) -> (FormFactors, RepairReport) {
