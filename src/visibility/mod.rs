@@ -91,12 +91,9 @@ impl Visibility {
     }
 
     /// Visibility of up to 16 segments at once, with Embree's packet query.
-    pub fn segments_visible16(&self, segs: &[(Vec3, Vec3, f32)], out: &mut [bool]) {
-        let mut rays = [(Vec3::ZERO, Vec3::ZERO, 0.0f32, 0.0f32); 16];
-        for (k, s) in segs.iter().enumerate() {
-            rays[k] = (s.0, s.1, 0.0, s.2);
-        }
-        self.scene.occluded16(&rays[..segs.len()], out);
+    #[inline]
+    pub fn segments_visible16(&self, segs: &[SegmentRay], out: &mut [bool]) {
+        self.scene.occluded16_segments(segs, out);
         for v in out[..segs.len()].iter_mut() {
             *v = !*v;
         }
@@ -114,10 +111,7 @@ impl Visibility {
             .chunks_exact(16)
             .zip(out[..n].chunks_exact_mut(16))
         {
-            self.scene.occluded16_segments(c, o);
-            for v in o.iter_mut() {
-                *v = !*v;
-            }
+            self.segments_visible16(c, o);
         }
         for (o, s) in out[n..].iter_mut().zip(&segs[n..]) {
             *o = !self.scene.occluded1(s.0, s.1, 0.0, s.2);
