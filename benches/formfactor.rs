@@ -9,6 +9,9 @@
 //!
 //! and prints the ratio of their ray rates, measured interleaved in one run.
 
+#[global_allocator]
+static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 
 use radiosity::bench::{format_ratios, ratio, raw_loop, record};

@@ -15,6 +15,7 @@
 //!   still hold).
 
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use glam::Vec3;
@@ -55,22 +56,36 @@ impl Recorded {
 
 /// Records the rays the stage of `choice` casts, in row order.
 pub fn record(ctx: &Context, choice: &EstimatorChoice) -> Recorded {
+    replay(ctx, choice, true).0
+}
+
+/// The stage of `choice` with its queries answered by a stub: the rays are made and, when
+/// `keep`, recorded in row order; otherwise only counted (the rate of everything but the
+/// queries, with no memory traffic of its own). Returns the rays recorded and their count.
+fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64) {
     let n = ctx.patches.len();
-    match *choice {
+    let count = AtomicU64::new(0);
+    let rec = match *choice {
         EstimatorChoice::Hemisphere { strata, replicates } => {
             let est = Hemisphere { strata, replicates };
             Recorded::Rays(
                 (0..n)
                     .into_par_iter()
-                    .flat_map_iter(|i| {
-                        let mut rays = Vec::new();
-                        est.row_with(ctx, i, &mut Row::default(), &mut |batch, out| {
-                            rays.extend_from_slice(batch);
+                    .map_init(Vec::new, |rays, i| {
+                        // One reused buffer per worker, copied out at its exact size.
+                        rays.clear();
+                        let mut row = Row::default();
+                        est.row_with(ctx, i, &mut row, &mut |batch, out| {
+                            if keep {
+                                rays.extend_from_slice(batch);
+                            }
                             out.fill(visibility::NO_HIT);
                         });
-                        rays
+                        count.fetch_add(row.rays, Ordering::Relaxed);
+                        rays.clone()
                     })
-                    .collect(),
+                    .collect::<Vec<_>>()
+                    .concat(),
             )
         }
         _ => {
@@ -86,10 +101,12 @@ pub fn record(ctx: &Context, choice: &EstimatorChoice) -> Recorded {
             Recorded::Segments(
                 (0..n)
                     .into_par_iter()
-                    .flat_map_iter(|i| {
-                        let mut rays = Vec::new();
+                    .map_init(Vec::new, |rays, i| {
+                        rays.clear();
                         let mut rec = |segs: &[(Vec3, Vec3, f32)], out: &mut [bool]| {
-                            rays.extend_from_slice(segs);
+                            if keep {
+                                rays.extend_from_slice(segs);
+                            }
                             out.iter_mut().for_each(|o| *o = true);
                         };
                         let mut row = Row::default();
@@ -118,12 +135,15 @@ pub fn record(ctx: &Context, choice: &EstimatorChoice) -> Recorded {
                             EstimatorChoice::Hemisphere { .. }
                             | EstimatorChoice::Hemicube { .. } => {}
                         }
-                        rays
+                        count.fetch_add(row.rays, Ordering::Relaxed);
+                        rays.clone()
                     })
-                    .collect(),
+                    .collect::<Vec<_>>()
+                    .concat(),
             )
         }
-    }
+    };
+    (rec, count.into_inner())
 }
 
 /// The raw Embree loop over recorded rays, one query per ray (`rtcOccluded1` or
@@ -214,8 +234,9 @@ fn median(mut v: Vec<f64>) -> f64 {
 pub fn ratio(ctx: &Context, choice: &EstimatorChoice, repeats: usize) -> RatioLine {
     let est = choice.build();
     let t = Instant::now();
+    let (_, made) = replay(ctx, choice, false);
+    let sampling = made as f64 / t.elapsed().as_secs_f64();
     let rec = record(ctx, choice);
-    let sampling = rec.len() as f64 / t.elapsed().as_secs_f64();
     let (mut stage, mut raw, mut raw16) = (Vec::new(), Vec::new(), Vec::new());
     let mut rays = 0;
     for _ in 0..repeats.max(1) {

@@ -8,6 +8,7 @@
 //! `rho_i * sum_j F_ij >= 1` somewhere, the bound that guarantees a bounded, convergent solve
 //! is lost (Cohen and Wallace 1993, §5.3), so the pipeline scales those rows to sum to 1.
 
+use rayon::prelude::*;
 use sprs::{CsMat, TriMat};
 
 use crate::formfactor::Entry;
@@ -56,6 +57,31 @@ pub fn repair_row_sums(f: &CsMat<f64>, rho: &[[f64; 3]]) -> Option<(CsMat<f64>, 
     Some((g, rep))
 }
 
+/// Sorts a row's entries by column and merges duplicates (adding values, and standard
+/// errors in quadrature; the built-in estimators never make duplicates).
+pub fn sort_row(row: &mut Vec<Entry>) {
+    row.sort_unstable_by_key(|e| e.j);
+    row.dedup_by(|b, a| {
+        if a.j == b.j {
+            a.f += b.f;
+            a.se = (a.se * a.se + b.se * b.se).sqrt();
+            true
+        } else {
+            false
+        }
+    });
+}
+
+/// Grows `v` to `len` zeros; a first allocation is zeroed by the allocator (`calloc`), so its
+/// pages are first touched by the parallel copy that fills them, not by a serial memset.
+fn grow<T: Clone + Default>(v: &mut Vec<T>, len: usize) {
+    if v.is_empty() {
+        *v = vec![T::default(); len];
+    } else {
+        v.resize(len, T::default());
+    }
+}
+
 /// A form-factor matrix and how it was made.
 #[derive(Clone, Debug)]
 pub struct FormFactors {
@@ -78,8 +104,11 @@ pub struct FormFactors {
 /// Form factors at least this large count as significant for the reciprocity figure.
 pub const SIGNIFICANT: f64 = 1e-3;
 
-/// Builds the CSR arrays one row at a time, so that rows can be freed as they are added
-/// (no dense `N x N` anything, and no second copy of the whole matrix).
+/// Builds the CSR arrays a row or a block of rows at a time, so that rows can be freed as
+/// they are added (no dense `N x N` anything, and no second copy of the whole matrix).
+/// Blocks of rows ([`CsrBuilder::push_rows`], [`CsrBuilder::from_upper`]) are copied in
+/// parallel, each row into its own slice of the arrays: with several threads the
+/// assembly is no serial tail after the parallel rows.
 #[derive(Debug, Default)]
 pub struct CsrBuilder {
     indptr: Vec<usize>,
@@ -110,23 +139,123 @@ impl CsrBuilder {
 
     /// Appends the next row (entries in any order; duplicates are merged).
     pub fn push_row(&mut self, row: &mut Vec<Entry>) {
-        row.sort_unstable_by_key(|e| e.j);
-        row.dedup_by(|b, a| {
-            // Merge duplicates (cannot happen with the built-in estimators).
-            if a.j == b.j {
-                a.f += b.f;
-                a.se = (a.se * a.se + b.se * b.se).sqrt();
-                true
-            } else {
-                false
-            }
-        });
+        sort_row(row);
         for e in row.iter() {
             self.indices.push(e.j as usize);
             self.data.push(e.f);
             self.se.push(e.se);
         }
         self.indptr.push(self.indices.len());
+    }
+
+    /// Appends the rows of a block, each already in column order without duplicates (as
+    /// [`sort_row`] leaves it), copying them in parallel on the current rayon pool.
+    pub fn push_rows(&mut self, rows: &[Vec<Entry>]) {
+        debug_assert!(rows.iter().all(|r| r.windows(2).all(|w| w[0].j < w[1].j)));
+        let base = self.indices.len();
+        let nnz: usize = rows.iter().map(Vec::len).sum();
+        grow(&mut self.indices, base + nnz);
+        grow(&mut self.data, base + nnz);
+        grow(&mut self.se, base + nnz);
+        let mut end = base;
+        for r in rows {
+            end += r.len();
+            self.indptr.push(end);
+        }
+        let (mut ix, mut dx, mut sx) = (
+            &mut self.indices[base..],
+            &mut self.data[base..],
+            &mut self.se[base..],
+        );
+        let mut parts = Vec::with_capacity(rows.len());
+        for r in rows {
+            let (a, rest) = std::mem::take(&mut ix).split_at_mut(r.len());
+            ix = rest;
+            let (b, rest) = std::mem::take(&mut dx).split_at_mut(r.len());
+            dx = rest;
+            let (c, rest) = std::mem::take(&mut sx).split_at_mut(r.len());
+            sx = rest;
+            parts.push((r, a, b, c));
+        }
+        parts.into_par_iter().for_each(|(r, ix, dx, sx)| {
+            for (k, e) in r.iter().enumerate() {
+                ix[k] = e.j as usize;
+                dx[k] = e.f;
+                sx[k] = e.se;
+            }
+        });
+    }
+
+    /// The whole matrix from its upper triangle: `rows[i]` holds the entries `F_ij` with
+    /// `j > i` (column order, no duplicates), and the lower triangle follows by reciprocity,
+    /// `F_ji = F_ij A_i / A_j` (radiosidade.md, "Teorema da Reciprocidade"), with the
+    /// standard error scaled alike. Rows are filled in parallel over blocks of destination
+    /// rows; each block gathers its mirrored entries from the source rows in row order, so
+    /// every row comes out sorted.
+    pub fn from_upper(rows: &[Vec<Entry>], area: &[f64]) -> CsrBuilder {
+        let n = rows.len();
+        debug_assert!(rows.iter().enumerate().all(|(i, r)| {
+            r.windows(2).all(|w| w[0].j < w[1].j) && r.iter().all(|e| e.j as usize > i)
+        }));
+        let mut lower = vec![0usize; n];
+        for r in rows {
+            for e in r {
+                lower[e.j as usize] += 1;
+            }
+        }
+        let mut indptr = Vec::with_capacity(n + 1);
+        indptr.push(0);
+        for (r, l) in rows.iter().zip(&lower) {
+            indptr.push(indptr.last().copied().unwrap_or(0) + r.len() + l);
+        }
+        let nnz = indptr[n];
+        let (mut indices, mut data, mut se) = (Vec::new(), Vec::new(), Vec::new());
+        grow(&mut indices, nnz);
+        grow(&mut data, nnz);
+        grow(&mut se, nnz);
+        // Blocks of destination rows, a few per thread, each with its slices of the arrays.
+        let step = n.div_ceil(4 * rayon::current_num_threads()).max(1);
+        let (mut ix, mut dx, mut sx) = (&mut indices[..], &mut data[..], &mut se[..]);
+        let mut blocks = Vec::new();
+        for j0 in (0..n).step_by(step) {
+            let j1 = (j0 + step).min(n);
+            let len = indptr[j1] - indptr[j0];
+            let (a, rest) = std::mem::take(&mut ix).split_at_mut(len);
+            ix = rest;
+            let (b, rest) = std::mem::take(&mut dx).split_at_mut(len);
+            dx = rest;
+            let (c, rest) = std::mem::take(&mut sx).split_at_mut(len);
+            sx = rest;
+            blocks.push((j0, j1, a, b, c));
+        }
+        let indptr_ref = &indptr;
+        blocks.into_par_iter().for_each(|(j0, j1, ix, dx, sx)| {
+            let off = indptr_ref[j0];
+            let mut cursor: Vec<usize> = (j0..j1).map(|j| indptr_ref[j] - off).collect();
+            // Mirrored entries: source rows i < j1 with columns in [j0, j1), in row order.
+            for (i, r) in rows[..j1].iter().enumerate() {
+                let lo = r.partition_point(|e| (e.j as usize) < j0);
+                for e in r[lo..].iter().take_while(|e| (e.j as usize) < j1) {
+                    let j = e.j as usize;
+                    let s = area[i] / area[j];
+                    let p = &mut cursor[j - j0];
+                    (ix[*p], dx[*p], sx[*p]) = (i, e.f * s, e.se * s);
+                    *p += 1;
+                }
+            }
+            // Then each row's own upper part.
+            for (j, p) in (j0..j1).zip(cursor) {
+                for (k, e) in rows[j].iter().enumerate() {
+                    (ix[p + k], dx[p + k], sx[p + k]) = (e.j as usize, e.f, e.se);
+                }
+            }
+        });
+        CsrBuilder {
+            indptr,
+            indices,
+            data,
+            se,
+        }
     }
 
     /// The finished matrix (square, one column per row pushed).
@@ -361,5 +490,68 @@ mod tests {
         assert!((s0 - 1.0).abs() < 1e-15);
         assert_eq!(g.get(1, 2), Some(&0.5));
         assert!(repair_row_sums(&f, &[[0.5; 3]; 3]).is_none());
+    }
+
+    /// A pseudo-random sparse upper triangle with up to `n` rows.
+    fn upper(n: usize, seed: u64) -> Vec<Vec<Entry>> {
+        let mut x = seed;
+        let mut next = move || {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            x >> 33
+        };
+        let mut rows = vec![Vec::new(); n];
+        for (i, r) in rows.iter_mut().enumerate() {
+            for j in i + 1..n {
+                if next() % 3 == 0 {
+                    let (f, se) = (next() as f64 / 1e9, next() as f64 / 1e12);
+                    r.push(Entry { j: j as u32, f, se });
+                }
+            }
+        }
+        rows
+    }
+
+    fn arrays(b: CsrBuilder) -> (Vec<usize>, Vec<usize>, Vec<f64>, Vec<f64>) {
+        (b.indptr, b.indices, b.data, b.se)
+    }
+
+    #[test]
+    fn parallel_assembly_matches_row_by_row() {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(3)
+            .build()
+            .unwrap();
+        for n in [0, 1, 2, 7, 50] {
+            let rows = upper(n, n as u64 + 1);
+            let area: Vec<f64> = (0..n).map(|i| 1.0 + i as f64 * 0.25).collect();
+            // Reference: mirror by hand, then one row at a time.
+            let mut full = rows.clone();
+            for (i, r) in rows.iter().enumerate() {
+                for e in r {
+                    let s = area[i] / area[e.j as usize];
+                    full[e.j as usize].push(Entry {
+                        j: i as u32,
+                        f: e.f * s,
+                        se: e.se * s,
+                    });
+                }
+            }
+            let mut want = CsrBuilder::with_capacity(n, 0);
+            for r in full.iter_mut() {
+                want.push_row(r);
+            }
+            let want = arrays(want);
+            let got = pool.install(|| arrays(CsrBuilder::from_upper(&rows, &area)));
+            assert_eq!(got, want, "from_upper, n = {n}");
+            // Blocks of sorted rows appended in parallel, in two calls.
+            let mut b = CsrBuilder::with_capacity(n, 0);
+            pool.install(|| {
+                b.push_rows(&full[..n / 2]);
+                b.push_rows(&full[n / 2..]);
+            });
+            assert_eq!(arrays(b), want, "push_rows, n = {n}");
+        }
     }
 }

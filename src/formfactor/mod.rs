@@ -23,7 +23,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use crate::matrix::{CsrBuilder, FormFactors};
+use crate::matrix::{sort_row, CsrBuilder, FormFactors};
 use crate::mesh::PatchSet;
 use crate::visibility::Visibility;
 
@@ -111,8 +111,8 @@ fn rows_par(
             row.entries.clear();
             row.rays = 0;
             est.row(ctx, i, row);
-            // Sorted here, in parallel, so that the serial assembly only copies.
-            row.entries.sort_unstable_by_key(|e| e.j);
+            // Sorted here, in parallel, so that the assembly only copies.
+            sort_row(&mut row.entries);
             let d = done.fetch_add(1, Ordering::Relaxed) + 1;
             if d % 64 == 0 || d == n {
                 progress(d);
@@ -138,28 +138,12 @@ pub fn compute_timed(
     let mut csr;
     if est.upper_only() {
         let t = Instant::now();
-        let (mut rows, r) = rows_par(ctx, est, 0..n, &done, n as u64, progress);
+        let (rows, r) = rows_par(ctx, est, 0..n, &done, n as u64, progress);
         rays = r;
         split.rows = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let mut mirrored: Vec<Vec<Entry>> = vec![Vec::new(); n];
-        for (i, row) in rows.iter().enumerate() {
-            for e in row {
-                let j = e.j as usize;
-                let s = area[i] / area[j];
-                mirrored[j].push(Entry {
-                    j: i as u32,
-                    f: e.f * s,
-                    se: e.se * s,
-                });
-            }
-        }
-        csr = CsrBuilder::with_capacity(n, 0);
-        for (row, extra) in rows.iter_mut().zip(mirrored) {
-            row.extend(extra);
-            csr.push_row(row);
-            *row = Vec::new();
-        }
+        csr = CsrBuilder::from_upper(&rows, area);
+        drop(rows);
         split.assembly = t.elapsed().as_secs_f64();
     } else {
         csr = CsrBuilder::with_capacity(n, 0);
@@ -176,10 +160,8 @@ pub fn compute_timed(
             rays += r;
             split.rows += t.elapsed().as_secs_f64();
             let t = Instant::now();
-            csr.reserve(rows.iter().map(Vec::len).sum());
-            for mut row in rows {
-                csr.push_row(&mut row);
-            }
+            csr.push_rows(&rows);
+            drop(rows);
             split.assembly += t.elapsed().as_secs_f64();
         }
     }
