@@ -29,7 +29,7 @@ use crate::output;
 use crate::pipeline::{self, EstimatorChoice};
 use crate::scene::Scene;
 use crate::solve::{Method, Options};
-use crate::visibility::{self, Visibility};
+use crate::visibility::{self, Segments, Visibility};
 
 /// The rays a form-factor stage casts, recorded.
 pub enum Recorded {
@@ -103,12 +103,6 @@ fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64
                     .into_par_iter()
                     .map_init(Vec::new, |rays, i| {
                         rays.clear();
-                        let mut rec = |segs: &[(Vec3, Vec3, f32)], out: &mut [bool]| {
-                            if keep {
-                                rays.extend_from_slice(segs);
-                            }
-                            out.iter_mut().for_each(|o| *o = true);
-                        };
                         let mut row = Row::default();
                         match *choice {
                             EstimatorChoice::AreaStratified { strata, replicates }
@@ -119,6 +113,13 @@ fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64
                                     EstimatorChoice::AreaSobol { .. } => Pattern::Sobol,
                                     _ => Pattern::Stratified,
                                 };
+                                // The area estimators hand over structure of arrays.
+                                let mut rec = |segs: &Segments, out: &mut [bool]| {
+                                    if keep {
+                                        rays.extend((0..segs.len()).map(|k| segs.ray(k)));
+                                    }
+                                    out.iter_mut().for_each(|o| *o = true);
+                                };
                                 AreaMc {
                                     pattern,
                                     strata,
@@ -126,10 +127,17 @@ fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64
                                 }
                                 .row_with(ctx, i, &mut row, &mut rec)
                             }
-                            EstimatorChoice::SemiAnalytic { .. } => semi
-                                .as_ref()
-                                .expect("built above")
-                                .row_with(ctx, i, &mut row, &mut rec),
+                            EstimatorChoice::SemiAnalytic { .. } => {
+                                let mut rec = |segs: &[(Vec3, Vec3, f32)], out: &mut [bool]| {
+                                    if keep {
+                                        rays.extend_from_slice(segs);
+                                    }
+                                    out.iter_mut().for_each(|o| *o = true);
+                                };
+                                semi.as_ref()
+                                    .expect("built above")
+                                    .row_with(ctx, i, &mut row, &mut rec)
+                            }
                             // Measured by the closest-hit branch above, or not ray-driven per
                             // pair (the hemicube casts one ray per cell): nothing to record.
                             EstimatorChoice::Hemisphere { .. }
@@ -547,6 +555,8 @@ pub struct BenchConfig {
     pub threads: usize,
     /// Set flush-to-zero / denormals-are-zero on the workers.
     pub ftz: bool,
+    /// Let the sampling passes use AVX2 where the processor has it ([`crate::simd`]).
+    pub simd: bool,
     /// Seed.
     pub seed: u64,
     /// Patch counts of the scaling run (empty: no scaling run).
@@ -589,6 +599,7 @@ pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
         cfg.threads
     };
     let pool = pool(threads, cfg.ftz)?;
+    crate::simd::set_enabled(cfg.simd);
     if cfg.scaling.is_empty() {
         let scene = Scene::load(&cfg.scene)?;
         let patches = PatchSet::build(&scene, Resolution::Patches(cfg.patches))?;
@@ -606,10 +617,15 @@ pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
                 .collect()
         });
         print(&format!(
-            "scene `{}`, Embree {}, ftz/daz {}",
+            "scene `{}`, Embree {}, ftz/daz {}, sampling passes {}",
             cfg.scene,
             vis.raw().version(),
-            if cfg.ftz { "on" } else { "off" }
+            if cfg.ftz { "on" } else { "off" },
+            if crate::simd::avx2_active() {
+                "AVX2"
+            } else {
+                "baseline"
+            }
         ));
         print(&format_ratios(&lines, threads));
         let reports = pool.install(|| -> Result<Vec<StageReport>> {

@@ -72,6 +72,10 @@ struct BenchArgs {
     /// Leave flush-to-zero / denormals-are-zero off on the workers.
     #[arg(long)]
     no_ftz: bool,
+    /// Run the sampling passes at the baseline vector width (no AVX2), to measure what the
+    /// wider passes gain (results are the same).
+    #[arg(long)]
+    no_simd: bool,
     /// Scaling run instead: Cornell box and cube at these patch counts (comma-separated).
     #[arg(long, value_delimiter = ',', num_args = 0.., default_missing_value = "1024,4096,16384,65536,262144")]
     scaling: Option<Vec<usize>>,
@@ -547,6 +551,7 @@ pub fn run() -> Result<()> {
                 repeats: a.repeats,
                 threads: a.threads,
                 ftz: !a.no_ftz,
+                simd: !a.no_simd,
                 seed: 1,
                 scaling: a.scaling.clone().unwrap_or_default(),
                 area_max: a.area_max,

@@ -29,6 +29,7 @@ pub mod pipeline;
 pub mod repair;
 pub mod sampling;
 pub mod scene;
+pub mod simd;
 pub mod solve;
 pub mod store;
 pub mod study;

@@ -108,6 +108,16 @@ impl Wy {
         ((t >> 64) as u64) ^ (t as u64)
     }
 
+    /// The next `out.len()` words, in order (the same as that many [`Wy::next_u64`]): a
+    /// loop of independent multiplies the processor overlaps, kept apart from the float
+    /// conversions so that those run as vector passes.
+    #[inline]
+    pub fn fill(&mut self, out: &mut [u64]) {
+        for w in out.iter_mut() {
+            *w = self.next_u64();
+        }
+    }
+
     /// Two uniform floats in [0, 1) (24 random bits each) from one draw.
     #[inline(always)]
     pub fn next_f32x2(&mut self) -> (f32, f32) {

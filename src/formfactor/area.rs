@@ -41,7 +41,7 @@ use std::f64::consts::FRAC_1_PI;
 
 use crate::mesh::PatchSampler;
 use crate::sampling::{unit_f32, Wy};
-use crate::visibility::SegmentRay;
+use crate::visibility::Segments;
 
 /// How points are placed on each patch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -133,7 +133,7 @@ impl Estimator for AreaMc {
     fn row(&self, ctx: &Context, a: usize, row: &mut Row) {
         let vis = ctx.vis;
         self.row_with(ctx, a, row, &mut |segs, out| {
-            vis.segments_visible(segs, out)
+            vis.segments_visible_soa(segs, out)
         });
     }
 }
@@ -148,7 +148,7 @@ impl AreaMc {
         ctx: &Context,
         a: usize,
         row: &mut Row,
-        visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
+        visible: &mut dyn FnMut(&Segments, &mut [bool]),
     ) {
         let p = ctx.patches;
         let (pa, ka) = p.corner_points(a);
@@ -156,19 +156,42 @@ impl AreaMc {
         let m = self.pairs_per_replicate();
         SCRATCH.with(|s| {
             let s = &mut s.borrow_mut();
+            crate::simd::with_avx2(
+                #[inline(always)]
+                || self.pairs_of(ctx, a, (&pa[..ka], &on_a), m, row, visible, s),
+            )
+        });
+    }
+
+    /// The pairs `(a, b > a)` of row a, given a's corners and sampler: culling, then
+    /// [`AreaMc::pair_in`] for each pair left.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn pairs_of(
+        &self,
+        ctx: &Context,
+        a: usize,
+        (pa, on_a): (&[Vec3], &PatchSampler),
+        m: usize,
+        row: &mut Row,
+        visible: &mut dyn FnMut(&Segments, &mut [bool]),
+        s: &mut Scratch,
+    ) {
+        let p = ctx.patches;
+        {
             for b in a + 1..p.len() {
                 // The corners of b serve both culling tests and b's sampler.
                 let (pb, kb) = p.corner_points(b);
-                if behind_plane(ctx, a, &pb[..kb]) || behind_plane(ctx, b, &pa[..ka]) {
+                if behind_plane(ctx, a, &pb[..kb]) || behind_plane(ctx, b, pa) {
                     continue;
                 }
                 let on_b = PatchSampler::of_corners(pb, kb);
-                let (ons, rays) = ((&on_a, &on_b), &mut row.rays);
+                let (ons, rays) = ((on_a, &on_b), &mut row.rays);
                 if let Some(e) = self.pair_in(ctx, a, b, ons, m, rays, visible, s) {
                     row.entries.push(e);
                 }
             }
-        });
+        }
     }
 
     /// The entry `F_ab` of the unordered pair (a, b) (`F_ba` follows by reciprocity), or
@@ -181,7 +204,7 @@ impl AreaMc {
         a: usize,
         b: usize,
         rays: &mut u64,
-        visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
+        visible: &mut dyn FnMut(&Segments, &mut [bool]),
     ) -> Option<Entry> {
         if behind(ctx, a, b) || behind(ctx, b, a) {
             return None;
@@ -194,6 +217,7 @@ impl AreaMc {
     /// [`AreaMc::pair_with`] after the culling test, with the samplers of patches a and b
     /// and the sample pairs per replicate `m`.
     #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     fn pair_in(
         &self,
         ctx: &Context,
@@ -202,7 +226,7 @@ impl AreaMc {
         (on_a, on_b): (&PatchSampler, &PatchSampler),
         m: usize,
         rays: &mut u64,
-        visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
+        visible: &mut dyn FnMut(&Segments, &mut [bool]),
         s: &mut Scratch,
     ) -> Option<Entry> {
         let p = ctx.patches;
@@ -217,13 +241,12 @@ impl AreaMc {
         on_a.points32(&s.u[0], &s.u[1], &mut s.x);
         on_b.points32(&s.u[2], &s.u[3], &mut s.y);
         let eps = ctx.vis.eps();
-        kernels(&s.x, n_a, &s.y, n_b, &mut s.g, &mut s.ok);
-        // The segment ray of every sample pair (AoS, as the queries take them); then, in
-        // the rare pairs where some samples do not face each other, those are dropped.
-        s.segs.resize(len, (Vec3::ZERO, Vec3::ZERO, 0.0));
-        segments(&s.x, n_a, &s.y, n_b, eps, &mut s.segs[..len]);
-        s.gs.clear();
-        s.gs.extend_from_slice(&s.g[..len]);
+        // Kernel, facing test and segment ray of every sample pair, as structure of arrays
+        // (the layout of Embree's packets); then, in the rare pairs where some samples do
+        // not face each other, those are dropped.
+        segments(
+            &s.x, n_a, &s.y, n_b, eps, &mut s.g, &mut s.ok, &mut s.org, &mut s.dir,
+        );
         s.ends.clear();
         let n = if s.ok[..len].iter().all(|&v| v) {
             s.ends.extend((1..=reps).map(|r| r * m));
@@ -233,8 +256,11 @@ impl AreaMc {
             for r in 0..reps {
                 for k in r * m..(r + 1) * m {
                     if s.ok[k] {
-                        s.segs[n] = s.segs[k];
-                        s.gs[n] = s.gs[k];
+                        for c in 0..3 {
+                            s.org[c][n] = s.org[c][k];
+                            s.dir[c][n] = s.dir[c][k];
+                        }
+                        s.g[n] = s.g[k];
                         n += 1;
                     }
                 }
@@ -244,11 +270,17 @@ impl AreaMc {
         };
         *rays += n as u64;
         s.seen.resize(len, false);
-        visible(&s.segs[..n], &mut s.seen[..n]);
+        let (o, d) = (&s.org, &s.dir);
+        let segs = Segments {
+            org: [&o[0][..n], &o[1][..n], &o[2][..n]],
+            dir: [&d[0][..n], &d[1][..n], &d[2][..n]],
+            tfar: SEGMENT_TFAR,
+        };
+        visible(&segs, &mut s.seen[..n]);
         let (mut avg, mut lo) = (0.0, 0);
         s.means.clear();
         for &hi in &s.ends {
-            let sum: f64 = s.gs[lo..hi]
+            let sum: f64 = s.g[lo..hi]
                 .iter()
                 .zip(&s.seen[lo..hi])
                 .map(|(&g, &v)| if v { g as f64 } else { 0.0 })
@@ -275,32 +307,31 @@ impl AreaMc {
     /// The pair's sample coordinates `(x_u, x_v, y_u, y_v)` in the unit square into
     /// `s.u[0..4]`, `m` per replicate, each replicate from its own substream `r` of the
     /// pair's `(seed, a, b)` stream ([`Wy::substream`]).
+    #[inline(always)]
     fn unit_square(&self, seed: u64, a: usize, b: usize, m: usize, reps: usize, s: &mut Scratch) {
+        let len = m * reps;
         match self.pattern {
             Pattern::Stratified => {
                 // One jittered pair in every cell of a t x t x t x t grid of the 4D domain
                 // (x on a, y on b): the joint dependence of the kernel on x and y is
                 // stratified too, not only its margins. Two 64-bit words per pair, 24 bits
-                // per coordinate.
-                self.cells(m, &mut s.cells);
+                // per coordinate: the words first, then one vector pass.
+                self.cells(m, reps, &mut s.cells);
                 // 1 / t, with t⁴ = m.
                 let inv = 1.0 / (m as f32).sqrt().sqrt().round();
+                self.words(seed, a, b, m, reps, &mut s.words);
                 let [c0, c1, c2, c3] = &s.cells;
-                let (c0, c1, c2, c3) = (&c0[..m], &c1[..m], &c2[..m], &c3[..m]);
+                let (c0, c1, c2, c3) = (&c0[..len], &c1[..len], &c2[..len], &c3[..len]);
                 let [u0, u1, u2, u3] = &mut s.u;
-                let pair = Wy::keyed(seed, a as u64, b as u64, 0);
-                for r in 0..reps {
-                    let mut rng = pair.substream(r as u64);
-                    let range = r * m..(r + 1) * m;
-                    let (u0, u1) = (&mut u0[range.clone()], &mut u1[range.clone()]);
-                    let (u2, u3) = (&mut u2[range.clone()], &mut u3[range]);
-                    for k in 0..m {
-                        let (w0, w1) = (rng.next_u64(), rng.next_u64());
-                        u0[k] = (c0[k] + unit_f32(w0 as u32)) * inv;
-                        u1[k] = (c1[k] + unit_f32((w0 >> 32) as u32)) * inv;
-                        u2[k] = (c2[k] + unit_f32(w1 as u32)) * inv;
-                        u3[k] = (c3[k] + unit_f32((w1 >> 32) as u32)) * inv;
-                    }
+                let (u0, u1) = (&mut u0[..len], &mut u1[..len]);
+                let (u2, u3) = (&mut u2[..len], &mut u3[..len]);
+                let w = &s.words[..2 * len];
+                for k in 0..len {
+                    let (w0, w1) = (w[2 * k], w[2 * k + 1]);
+                    u0[k] = (c0[k] + unit_f32(w0 as u32)) * inv;
+                    u1[k] = (c1[k] + unit_f32((w0 >> 32) as u32)) * inv;
+                    u2[k] = (c2[k] + unit_f32(w1 as u32)) * inv;
+                    u3[k] = (c3[k] + unit_f32((w1 >> 32) as u32)) * inv;
                 }
             }
             Pattern::Sobol => {
@@ -317,35 +348,50 @@ impl AreaMc {
                 }
             }
             Pattern::Uniform => {
-                let pair = Wy::keyed(seed, a as u64, b as u64, 0);
-                for r in 0..reps {
-                    let mut rng = pair.substream(r as u64);
-                    for k in r * m..(r + 1) * m {
-                        let (u0, u1) = rng.next_f32x2();
-                        let (u2, u3) = rng.next_f32x2();
-                        for (u, q) in s.u.iter_mut().zip([u0, u1, u2, u3]) {
-                            u[k] = q;
-                        }
-                    }
+                self.words(seed, a, b, m, reps, &mut s.words);
+                let [u0, u1, u2, u3] = &mut s.u;
+                let (u0, u1) = (&mut u0[..len], &mut u1[..len]);
+                let (u2, u3) = (&mut u2[..len], &mut u3[..len]);
+                let w = &s.words[..2 * len];
+                for k in 0..len {
+                    let (w0, w1) = (w[2 * k], w[2 * k + 1]);
+                    u0[k] = unit_f32(w0 as u32);
+                    u1[k] = unit_f32((w0 >> 32) as u32);
+                    u2[k] = unit_f32(w1 as u32);
+                    u3[k] = unit_f32((w1 >> 32) as u32);
                 }
             }
         }
     }
 
+    /// Two words per sample pair into `words`, replicate r's `m` pairs from substream `r`
+    /// of the pair's `(seed, a, b)` stream ([`Wy::substream`]).
+    #[inline(always)]
+    fn words(&self, seed: u64, a: usize, b: usize, m: usize, reps: usize, words: &mut Vec<u64>) {
+        words.resize(2 * m * reps, 0);
+        let pair = Wy::keyed(seed, a as u64, b as u64, 0);
+        for (r, w) in words.chunks_exact_mut(2 * m).enumerate() {
+            pair.substream(r as u64).fill(w);
+        }
+    }
+
     /// The integer coordinates of the cells of the stratified pattern's 4D grid, last one
-    /// fastest, `m = t⁴` of them, into `cells` (unchanged when it already holds them).
-    fn cells(&self, m: usize, cells: &mut [Vec<f32>; 4]) {
-        if cells[0].len() == m {
+    /// fastest, `m = t⁴` of them, repeated for `reps` replicates, into `cells` (unchanged
+    /// when it already holds them).
+    fn cells(&self, m: usize, reps: usize, cells: &mut [Vec<f32>; 4]) {
+        if cells[0].len() == m * reps {
             return;
         }
         let t = self.grid();
         cells.iter_mut().for_each(|c| c.clear());
-        for a1 in 0..t {
-            for a2 in 0..t {
-                for b1 in 0..t {
-                    for b2 in 0..t {
-                        for (c, v) in cells.iter_mut().zip([a1, a2, b1, b2]) {
-                            c.push(v as f32);
+        for _ in 0..reps {
+            for a1 in 0..t {
+                for a2 in 0..t {
+                    for b1 in 0..t {
+                        for b2 in 0..t {
+                            for (c, v) in cells.iter_mut().zip([a1, a2, b1, b2]) {
+                                c.push(v as f32);
+                            }
                         }
                     }
                 }
@@ -354,21 +400,34 @@ impl AreaMc {
     }
 }
 
-/// The kernel `cos θ_x cos θ_y / r²` (without the 1/π) of each sample pair `(x_k, y_k)`
-/// into `g`, and whether the two points face each other (`ok`: the kernel is positive and a
-/// ray is needed).
-fn kernels(
+/// For each sample pair `(x_k, y_k)`: the kernel `cos θ_x cos θ_y / r²` (without the 1/π)
+/// into `g`, whether the two points face each other into `ok` (the kernel is positive and a
+/// ray is needed), and the segment ray between them into `org`/`dir` (structure of
+/// arrays): both ends moved off their surfaces along their own normals, the case
+/// [`crate::visibility::Visibility::segment_ray`] selects for facing points, without its
+/// two tests.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn segments(
     x: &[Vec<f32>; 3],
     n_x: Vec3,
     y: &[Vec<f32>; 3],
     n_y: Vec3,
+    eps: f32,
     g: &mut [f32],
     ok: &mut [bool],
+    org: &mut [Vec<f32>; 3],
+    dir: &mut [Vec<f32>; 3],
 ) {
     let len = g.len();
     let (x0, x1, x2) = (&x[0][..len], &x[1][..len], &x[2][..len]);
     let (y0, y1, y2) = (&y[0][..len], &y[1][..len], &y[2][..len]);
     let ok = &mut ok[..len];
+    let [o0, o1, o2] = org;
+    let (o0, o1, o2) = (&mut o0[..len], &mut o1[..len], &mut o2[..len]);
+    let [d0, d1, d2] = dir;
+    let (d0, d1, d2) = (&mut d0[..len], &mut d1[..len], &mut d2[..len]);
+    let (ox, oy) = (n_x * eps, n_y * eps);
     for k in 0..len {
         let (dx, dy, dz) = (y0[k] - x0[k], y1[k] - x1[k], y2[k] - x2[k]);
         let r2 = dx * dx + dy * dy + dz * dz;
@@ -377,29 +436,10 @@ fn kernels(
         let inv = 1.0 / r2;
         g[k] = (cx * inv) * (cy * inv);
         ok[k] = (cx > 0.0) & (cy > 0.0) & (r2 > 0.0);
-    }
-}
-
-/// The segment ray between each sample pair `(x_k, y_k)` that faces each other: both ends
-/// move off their surfaces along their own normals (the case
-/// [`crate::visibility::Visibility::segment_ray`] selects then), the same segment ray
-/// without its two tests.
-fn segments(
-    x: &[Vec<f32>; 3],
-    n_x: Vec3,
-    y: &[Vec<f32>; 3],
-    n_y: Vec3,
-    eps: f32,
-    out: &mut [SegmentRay],
-) {
-    let len = out.len();
-    let (x0, x1, x2) = (&x[0][..len], &x[1][..len], &x[2][..len]);
-    let (y0, y1, y2) = (&y[0][..len], &y[1][..len], &y[2][..len]);
-    let (ox, oy) = (n_x * eps, n_y * eps);
-    for (k, seg) in out.iter_mut().enumerate() {
-        let org = Vec3::new(x0[k] + ox.x, x1[k] + ox.y, x2[k] + ox.z);
-        let end = Vec3::new(y0[k] + oy.x, y1[k] + oy.y, y2[k] + oy.z);
-        *seg = (org, end - org, SEGMENT_TFAR);
+        let org = (x0[k] + ox.x, x1[k] + ox.y, x2[k] + ox.z);
+        let end = (y0[k] + oy.x, y1[k] + oy.y, y2[k] + oy.z);
+        (o0[k], o1[k], o2[k]) = org;
+        (d0[k], d1[k], d2[k]) = (end.0 - org.0, end.1 - org.1, end.2 - org.2);
     }
 }
 
@@ -417,15 +457,17 @@ struct Scratch {
     /// Points on patch a and on patch b.
     x: [Vec<f32>; 3],
     y: [Vec<f32>; 3],
+    /// Random words, two per sample pair.
+    words: Vec<u64>,
     /// Kernel values and facing tests of every pair.
     g: Vec<f32>,
     ok: Vec<bool>,
-    /// The segment rays cast, replicate after replicate, with their kernel values and
-    /// visibility.
-    segs: Vec<SegmentRay>,
-    gs: Vec<f32>,
+    /// The segment rays (structure of arrays), replicate after replicate, and their
+    /// visibility; after a facing test drops samples, `g` and the rays are compacted.
+    org: [Vec<f32>; 3],
+    dir: [Vec<f32>; 3],
     seen: Vec<bool>,
-    /// End of each replicate's rays in `segs`.
+    /// End of each replicate's rays.
     ends: Vec<usize>,
     means: Vec<f64>,
 }
@@ -437,6 +479,9 @@ impl Scratch {
             return;
         }
         for v in self.u.iter_mut().chain(&mut self.x).chain(&mut self.y) {
+            v.resize(len, 0.0);
+        }
+        for v in self.org.iter_mut().chain(&mut self.dir) {
             v.resize(len, 0.0);
         }
         self.g.resize(len, 0.0);

@@ -23,7 +23,7 @@
 use glam::Vec3;
 
 use super::{Context, Entry, Estimator, Row};
-use crate::sampling::Wy;
+use crate::sampling::{unit_f32, Wy};
 use crate::visibility::{Ray, NO_HIT};
 
 /// Fraction of an origin's distance to the patch centroid by which it is pulled inward.
@@ -119,6 +119,7 @@ fn sin_cos_quarter(x: f32) -> (f32, f32) {
 /// [`cosine_direction`] in `f32` for every `(u[k], v[k])`, into `out = [x, y, z]`
 /// (local frame, z up): the concentric map with the octant chosen by selects, not branches,
 /// and a polynomial sine and cosine ([`sin_cos_quarter`]).
+#[inline(always)]
 pub fn cosine_directions(u: &[f32], v: &[f32], out: &mut [Vec<f32>; 3]) {
     let len = u.len();
     let v = &v[..len];
@@ -150,8 +151,12 @@ struct Scratch {
     /// Cells of the `s x s` grid, `(column, row)` as floats, for `cells_of` strata.
     cells: [Vec<f32>; 2],
     cells_of: usize,
-    /// Random permutation pairing position strata with direction strata.
+    /// Random permutation pairing position strata with direction strata, and the
+    /// direction cells it picks.
     perm: Vec<u32>,
+    cd: [Vec<f32>; 2],
+    /// Random words of one replicate, two per ray.
+    words: Vec<u64>,
     /// Unit-square coordinates of positions and of directions, one replicate's worth.
     u: [Vec<f32>; 4],
     /// Points on the patch and local directions.
@@ -160,12 +165,15 @@ struct Scratch {
     /// Rays `(origin, direction)` of one replicate, and what they hit.
     rays: Vec<Ray>,
     hits: Vec<u32>,
-    /// Hit tallies: `counts[j * reps + r]` is valid when `stamp[j] == row`, the running row
-    /// number of this thread; `touched` lists those `j` in first-hit order.
+    /// Hit tallies `counts[j * reps + r]` for patches `j < n` and a spare slot `j = n`
+    /// that takes misses; all zero between rows. `seen[j] == row` (the running row number
+    /// of this thread) when `j` was hit in this row; `touched[..t_len]` lists those `j`
+    /// in first-hit order.
     counts: Vec<u32>,
-    stamp: Vec<u32>,
+    seen: Vec<u32>,
     row: u32,
     touched: Vec<u32>,
+    t_len: usize,
 }
 
 thread_local! {
@@ -185,9 +193,16 @@ impl Hemisphere {
         row: &mut Row,
         first_hits: &mut dyn FnMut(&[Ray], &mut [u32]),
     ) {
-        SCRATCH.with(|s| self.row_in(ctx, i, row, first_hits, &mut s.borrow_mut()));
+        SCRATCH.with(|s| {
+            let s = &mut s.borrow_mut();
+            crate::simd::with_avx2(
+                #[inline(always)]
+                || self.row_in(ctx, i, row, first_hits, s),
+            )
+        });
     }
 
+    #[inline(always)]
     fn row_in(
         &self,
         ctx: &Context,
@@ -215,10 +230,11 @@ impl Hemisphere {
         // A new row stamp: every tally of an earlier row is stale.
         s.row = s.row.wrapping_add(1);
         if s.row == 0 {
-            s.stamp.iter_mut().for_each(|v| *v = 0);
+            s.seen.iter_mut().for_each(|v| *v = 0);
             s.row = 1;
         }
-        s.touched.clear();
+        s.t_len = 0;
+        let n = p.len();
         // One replicate at a time (its buffers stay in the L1 cache next to Embree's).
         for r in 0..reps {
             // Unit-square coordinates: a jittered position in stratum k, and a jittered
@@ -239,19 +255,19 @@ impl Hemisphere {
                 }
                 k = k.saturating_sub(2);
             }
+            // Two words per ray, in the order the jitter takes them, then converted in a
+            // vector pass: word 2k jitters the position, word 2k + 1 the direction.
+            rng.fill(&mut s.words[..2 * m]);
             let [c0, c1] = &s.cells;
             let (c0, c1) = (&c0[..m], &c1[..m]);
-            let [u0, u1, u2, u3] = &mut s.u;
-            let (u0, u1, u2, u3) = (&mut u0[..m], &mut u1[..m], &mut u2[..m], &mut u3[..m]);
+            let [cd0, cd1] = &mut s.cd;
+            let (cd0, cd1) = (&mut cd0[..m], &mut cd1[..m]);
             for k in 0..m {
-                let (j0, j1) = rng.next_f32x2();
-                let (j2, j3) = rng.next_f32x2();
                 let c = perm[k] as usize;
-                u0[k] = (c0[k] + j0) * inv;
-                u1[k] = (c1[k] + j1) * inv;
-                u2[k] = (c0[c] + j2) * inv;
-                u3[k] = (c1[c] + j3) * inv;
+                cd0[k] = c0[c];
+                cd1[k] = c1[c];
             }
+            jitter(&s.cells, &s.cd, &s.words[..2 * m], inv, &mut s.u);
             on_i.points32(&s.u[0][..m], &s.u[1][..m], &mut s.x);
             cosine_directions(&s.u[2][..m], &s.u[3][..m], &mut s.d);
             // World directions (unit up to rounding: the basis is orthonormal), origins
@@ -266,55 +282,101 @@ impl Hemisphere {
                 *ray = (x + (centroid - x) * PULL + off, w);
             }
             first_hits(&s.rays[..m], &mut s.hits[..m]);
-            // Count front-face hits per (patch, replicate) in the dense per-thread tallies.
-            let (stamp, counts) = (&mut s.stamp[..], &mut s.counts[..]);
+            // Count front-face hits per (patch, replicate), without branches: a miss, a hit
+            // on patch i itself or on a back face counts in the spare slot n, and the
+            // patches seen in this row are listed once each (`seen[j] == row`).
+            let (seen, counts, touched) = (&mut s.seen[..], &mut s.counts[..], &mut s.touched);
+            let row_stamp = s.row;
+            let mut t_len = s.t_len;
             for (&j, ray) in s.hits[..m].iter().zip(&s.rays[..m]) {
-                if j == NO_HIT || j as usize == i || p.normal[j as usize].dot(ray.1) >= 0.0 {
-                    continue;
-                }
-                let ju = j as usize;
-                if stamp[ju] != s.row {
-                    stamp[ju] = s.row;
-                    counts[ju * reps..(ju + 1) * reps].fill(0);
-                    s.touched.push(j);
-                }
-                counts[ju * reps + r] += 1;
+                let jj = (j as usize).min(n);
+                let nj = p.normal[jj.min(n - 1)];
+                let front = (jj < n) & (jj != i) & (nj.dot(ray.1) < 0.0);
+                let slot = if front { jj } else { n };
+                counts[slot * reps + r] += 1;
+                let fresh = seen[slot] != row_stamp;
+                seen[slot] = row_stamp;
+                touched[t_len] = slot as u32;
+                t_len += fresh as usize;
             }
+            s.t_len = t_len;
         }
         row.rays += (m * reps) as u64;
-        let counts = &s.counts;
         // Entries in column order (the matrix assembly then finds each row sorted), mean
         // and variance of the replicate means from exact integer sums: with S = Σ c_r and
         // Q = Σ c_r², Var = (R Q - S²) / (R (R - 1) m²).
-        let n = p.len();
-        if s.touched.len() * 8 >= n {
+        let t_len = s.t_len;
+        let order = if t_len * 8 >= n {
             // Most patches were hit: a scan of the stamps lists them in order for less than
-            // a sort.
-            s.touched.clear();
-            let row_stamp = s.row;
-            s.touched.extend(
-                (0..n as u32).filter(|&j| s.stamp[j as usize] == row_stamp && j as usize != i),
-            );
+            // a sort (written over `touched`, which the scan does not read).
+            let mut c = 0;
+            for j in 0..n {
+                s.touched[c] = j as u32;
+                c += (s.seen[j] == s.row) as usize;
+            }
+            &s.touched[..c]
         } else {
-            s.touched.sort_unstable();
-        }
+            let t = &mut s.touched[..t_len];
+            t.sort_unstable();
+            // The spare slot n sorts last.
+            &t[..t_len - (t.last() == Some(&(n as u32))) as usize]
+        };
+        // The squared standard error of the mean is Var / R.
         let rf = reps as f64;
-        let (inv_mr, inv_var) = (
+        let (inv_mr, inv_se2) = (
             1.0 / (m as f64 * rf),
-            1.0 / (rf * (rf - 1.0) * (m as f64).powi(2)),
+            1.0 / (rf * rf * (rf - 1.0) * (m as f64).powi(2)),
         );
-        for &j in &s.touched {
-            let c = &counts[j as usize * reps..(j as usize + 1) * reps];
-            let (sum, sq) = c.iter().fold((0u64, 0u64), |(a, q), &c| {
-                (a + c as u64, q + c as u64 * c as u64)
+        row.entries.reserve(order.len());
+        for &j in order {
+            let c = &mut s.counts[j as usize * reps..(j as usize + 1) * reps];
+            let (sum, sq) = c.iter().fold((0i64, 0i64), |(a, q), &c| {
+                (a + c as i64, q + c as i64 * c as i64)
             });
-            let var = (reps as u64 * sq - sum * sum) as f64 * inv_var;
+            // Back to zero for the next row.
+            c.fill(0);
             row.entries.push(Entry {
                 j,
                 f: sum as f64 * inv_mr,
-                se: (var / rf).sqrt(),
+                se: ((reps as i64 * sq - sum * sum) as f64 * inv_se2).sqrt(),
             });
         }
+        s.counts[n * reps..(n + 1) * reps].fill(0);
+    }
+}
+
+/// Unit-square coordinates of one replicate's rays into `u = [x_u, x_v, d_u, d_v]`: the
+/// position of ray k jittered in cell `cells[.][k]`, its direction in cell `cd[.][k]`, by
+/// the 24-bit uniforms ([`unit_f32`]) of the halves of `words[2k]` (position) and
+/// `words[2k + 1]` (direction), all scaled by `inv = 1 / strata`.
+#[inline(always)]
+fn jitter(
+    cells: &[Vec<f32>; 2],
+    cd: &[Vec<f32>; 2],
+    words: &[u64],
+    inv: f32,
+    u: &mut [Vec<f32>; 4],
+) {
+    let len = words.len() / 2;
+    let (c0, c1, e0, e1) = (
+        &cells[0][..len],
+        &cells[1][..len],
+        &cd[0][..len],
+        &cd[1][..len],
+    );
+    let [u0, u1, u2, u3] = u;
+    let (u0, u1, u2, u3) = (
+        &mut u0[..len],
+        &mut u1[..len],
+        &mut u2[..len],
+        &mut u3[..len],
+    );
+    for k in 0..len {
+        let (wx, wd) = (words[2 * k], words[2 * k + 1]);
+        u0[k] = (c0[k] + unit_f32(wx as u32)) * inv;
+        u1[k] = (c1[k] + unit_f32((wx >> 32) as u32)) * inv;
+        u2[k] = (e0[k] + unit_f32(wd as u32)) * inv;
+        u3[k] = (e1[k] + unit_f32((wd >> 32) as u32)) * inv;
     }
 }
 
@@ -322,11 +384,12 @@ impl Scratch {
     /// Sizes the buffers for `len` rays (one replicate), `st x st` strata per replicate,
     /// `reps` replicates and a scene of `n` patches.
     fn prepare(&mut self, st: usize, len: usize, n: usize, reps: usize) {
-        if self.stamp.len() < n {
-            self.stamp.resize(n, 0);
+        if self.seen.len() < n + 1 {
+            self.seen.resize(n + 1, 0);
+            self.touched.resize(n + 1, 0);
         }
-        if self.counts.len() < n * reps {
-            self.counts.resize(n * reps, 0);
+        if self.counts.len() < (n + 1) * reps {
+            self.counts.resize((n + 1) * reps, 0);
         }
         if self.cells_of != st {
             let [c0, c1] = &mut self.cells;
@@ -341,7 +404,14 @@ impl Scratch {
             self.cells_of = st;
         }
         self.perm.resize(st * st, 0);
-        for v in self.u.iter_mut().chain(&mut self.x).chain(&mut self.d) {
+        self.words.resize(2 * len, 0);
+        for v in self
+            .u
+            .iter_mut()
+            .chain(&mut self.x)
+            .chain(&mut self.d)
+            .chain(&mut self.cd)
+        {
             v.resize(len, 0.0);
         }
         self.hits.resize(len, NO_HIT);

@@ -380,6 +380,7 @@ impl PatchSampler {
     /// [`PatchSampler::point32`] of every `(u[k], v[k])`, into `out = [x, y, z]` (at least
     /// as long as `u`): one loop per warp, without branches inside, so the compiler
     /// runs it four points at a time.
+    #[inline(always)]
     pub fn points32(&self, u: &[f32], v: &[f32], out: &mut [Vec<f32>; 3]) {
         let len = u.len();
         let v = &v[..len];

@@ -236,6 +236,32 @@ impl EmbreeScene {
         self.occluded16_with(rays.len(), |k| (rays[k].0, rays[k].1, 0.0, rays[k].2), out);
     }
 
+    /// `rtcOccluded16` over up to 16 segment rays given as structure of arrays: ray k
+    /// starts at `(org[0][k], org[1][k], org[2][k])`, has direction `dir[.][k]` and runs
+    /// over `[0, tfar]`. The slices are copied into the packet whole (no transposition);
+    /// `out[k]` is set to true when ray k is blocked.
+    #[inline]
+    pub fn occluded16_soa(&self, org: [&[f32]; 3], dir: [&[f32]; 3], tfar: f32, out: &mut [bool]) {
+        let n = org[0].len();
+        debug_assert!(n <= 16 && out.len() >= n);
+        let mut packet = sys::RTCRay16::default();
+        let mut valid = Valid16([0i32; 16]);
+        valid.0[..n].fill(-1);
+        packet.org_x[..n].copy_from_slice(org[0]);
+        packet.org_y[..n].copy_from_slice(&org[1][..n]);
+        packet.org_z[..n].copy_from_slice(&org[2][..n]);
+        packet.dir_x[..n].copy_from_slice(&dir[0][..n]);
+        packet.dir_y[..n].copy_from_slice(&dir[1][..n]);
+        packet.dir_z[..n].copy_from_slice(&dir[2][..n]);
+        packet.tfar[..n].fill(tfar);
+        // SAFETY: as in `occluded16_with`: committed scene, 64-byte aligned packet and
+        // mask, lanes with valid = 0 ignored.
+        unsafe { sys::rtcOccluded16(valid.0.as_ptr(), self.scene, &mut packet, null_mut()) };
+        for (o, tfar) in out.iter_mut().zip(packet.tfar).take(n) {
+            *o = tfar < 0.0;
+        }
+    }
+
     /// Occlusion for up to 16 rays at once (`rtcOccluded16`). Each ray is
     /// `(origin, direction, tnear, tfar)`; `out[k]` is set to true when ray k is blocked.
     #[inline]

@@ -26,6 +26,42 @@ pub const OFFSET_REL: f32 = 1e-5;
 /// [`Visibility::segment_ray`].
 pub type SegmentRay = (Vec3, Vec3, f32);
 
+/// Segment rays as structure of arrays: ray k starts at `(org[0][k], org[1][k],
+/// org[2][k])`, has direction `dir[.][k]` (far end minus origin, offsets applied as in
+/// [`Visibility::segment_ray`]) and runs over `t` in `[0, tfar]`. This is the layout of
+/// Embree's packets, so a batch goes to `rtcOccluded16` without being transposed.
+#[derive(Clone, Copy, Debug)]
+pub struct Segments<'a> {
+    /// Origins, by coordinate.
+    pub org: [&'a [f32]; 3],
+    /// Directions, by coordinate.
+    pub dir: [&'a [f32]; 3],
+    /// Common end of every ray, in units of its direction.
+    pub tfar: f32,
+}
+
+impl Segments<'_> {
+    /// Number of rays.
+    pub fn len(&self) -> usize {
+        self.org[0].len()
+    }
+
+    /// True when there is no ray.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Ray k as a [`SegmentRay`].
+    pub fn ray(&self, k: usize) -> SegmentRay {
+        let (o, d) = (self.org, self.dir);
+        (
+            Vec3::new(o[0][k], o[1][k], o[2][k]),
+            Vec3::new(d[0][k], d[1][k], d[2][k]),
+            self.tfar,
+        )
+    }
+}
+
 /// A ray `(origin, unit direction)` for closest-hit queries.
 pub type Ray = (Vec3, Vec3);
 
@@ -115,6 +151,24 @@ impl Visibility {
         }
         for (o, s) in out[n..].iter_mut().zip(&segs[n..]) {
             *o = !self.scene.occluded1(s.0, s.1, 0.0, s.2);
+        }
+    }
+
+    /// [`Visibility::segments_visible`] of segment rays given as structure of arrays: one
+    /// `rtcOccluded16` per 16 rays (the last packet partly filled), each filled by copying
+    /// 16-float runs.
+    #[inline]
+    pub fn segments_visible_soa(&self, segs: &Segments, out: &mut [bool]) {
+        let n = segs.len();
+        let (o, d) = (segs.org, segs.dir);
+        for (lo, out) in (0..n).step_by(16).zip(out[..n].chunks_mut(16)) {
+            let hi = (lo + 16).min(n);
+            let org = [&o[0][lo..hi], &o[1][lo..hi], &o[2][lo..hi]];
+            let dir = [&d[0][lo..hi], &d[1][lo..hi], &d[2][lo..hi]];
+            self.scene.occluded16_soa(org, dir, segs.tfar, out);
+            for v in out.iter_mut() {
+                *v = !*v;
+            }
         }
     }
 
