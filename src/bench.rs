@@ -5,10 +5,11 @@
 //!
 //! - [`ratio`]: for one estimator, the exact rays its stage casts are recorded once (each
 //!   estimator's `row_with` takes the query as a closure, and the rays do not depend on the
-//!   answers); then the whole stage ([`formfactor::compute`]) and raw loops of
-//!   `rtcOccluded1` and `rtcOccluded16` (segment estimators) or `rtcIntersect1`
-//!   (hemisphere: closest hit) over the recorded rays run alternately on the same rayon
-//!   pool. The ratio printed is the stage's rate over the best raw rate.
+//!   answers); then the whole stage ([`formfactor::compute`]) and two raw loops over the
+//!   recorded rays, one query per ray (`rtcOccluded1`, or `rtcIntersect1` for the
+//!   hemisphere's closest hits) and 16-ray packets of consecutive rays (`rtcOccluded16`,
+//!   `rtcIntersect16`), run alternately on the same rayon pool. The ratio printed is the
+//!   stage's rate over the better raw rate.
 //! - [`stages`]: load, mesh, BVH, form-factor rows, assembly, solve, output, each with its
 //!   wall time and the peak resident memory during it (Linux: `VmHWM` reset through
 //!   `/proc/self/clear_refs` before the stage, read after; it includes what earlier stages
@@ -77,7 +78,7 @@ fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64
                         let mut row = Row::default();
                         est.row_with(ctx, i, &mut row, &mut |batch, out| {
                             if keep {
-                                rays.extend_from_slice(batch);
+                                rays.extend((0..batch.len()).map(|k| batch.ray(k)));
                             }
                             out.fill(visibility::NO_HIT);
                         });
@@ -179,15 +180,13 @@ pub fn raw_loop(vis: &Visibility, rec: &Recorded) -> u64 {
     }
 }
 
-/// The raw loop with 16-ray packets (`rtcOccluded16`) over consecutive recorded segments;
-/// `None` for closest-hit rays (no 16-wide closest-hit query is wrapped).
-pub fn raw_loop16(vis: &Visibility, rec: &Recorded) -> Option<u64> {
-    let Recorded::Segments(v) = rec else {
-        return None;
-    };
+/// The raw loop with 16-ray packets over consecutive recorded rays: `rtcOccluded16` for
+/// segments, `rtcIntersect16` for closest-hit rays. Returns a checksum.
+pub fn raw_loop16(vis: &Visibility, rec: &Recorded) -> u64 {
     let e = vis.raw();
-    Some(
-        v.par_chunks(4096)
+    match rec {
+        Recorded::Segments(v) => v
+            .par_chunks(4096)
             .map(|ch| {
                 let mut out = [false; 16];
                 let mut rays = [(Vec3::ZERO, Vec3::ZERO, 0.0, 0.0); 16];
@@ -202,7 +201,37 @@ pub fn raw_loop16(vis: &Visibility, rec: &Recorded) -> Option<u64> {
                 c
             })
             .sum(),
-    )
+        Recorded::Rays(v) => v
+            .par_chunks(4096)
+            .map(|ch| {
+                let (mut out, mut against) = ([0u32; 16], [false; 16]);
+                let mut packet = visibility::HitPacket16::new();
+                let mut soa = [[0f32; 16]; 6];
+                let mut c = 0u64;
+                for p in ch.chunks(16) {
+                    for (k, r) in p.iter().enumerate() {
+                        for (a, v) in soa
+                            .iter_mut()
+                            .zip([r.0.x, r.0.y, r.0.z, r.1.x, r.1.y, r.1.z])
+                        {
+                            a[k] = v;
+                        }
+                    }
+                    let n = p.len();
+                    let [ox, oy, oz, dx, dy, dz] = &soa;
+                    e.intersect16_soa(
+                        &mut packet,
+                        [&ox[..n], &oy[..n], &oz[..n]],
+                        [&dx[..n], &dy[..n], &dz[..n]],
+                        &mut out,
+                        &mut against,
+                    );
+                    c += out[..n].iter().map(|&h| h as u64).sum::<u64>();
+                }
+                c
+            })
+            .sum(),
+    }
 }
 
 /// One line of the stage-versus-raw table.
@@ -218,8 +247,8 @@ pub struct RatioLine {
     pub stage: f64,
     /// Raw single-ray loop, rays per second (median).
     pub raw: f64,
-    /// Raw 16-ray packet loop, rays per second (median), for occlusion rays.
-    pub raw16: Option<f64>,
+    /// Raw 16-ray packet loop, rays per second (median).
+    pub raw16: f64,
     /// The stage with the queries replaced by a recorder, rays per second (one run).
     pub sampling: f64,
 }
@@ -228,7 +257,7 @@ impl RatioLine {
     /// Stage rate over the best raw rate (single rays or packets, whichever Embree runs
     /// faster on these rays): how close the stage comes to Embree's own limit.
     pub fn ratio(&self) -> f64 {
-        self.stage / self.raw.max(self.raw16.unwrap_or(0.0))
+        self.stage / self.raw.max(self.raw16)
     }
 }
 
@@ -257,9 +286,8 @@ pub fn ratio(ctx: &Context, choice: &EstimatorChoice, repeats: usize) -> RatioLi
         std::hint::black_box(raw_loop(ctx.vis, &rec));
         raw.push(rec.len() as f64 / t.elapsed().as_secs_f64());
         let t = Instant::now();
-        if std::hint::black_box(raw_loop16(ctx.vis, &rec)).is_some() {
-            raw16.push(rec.len() as f64 / t.elapsed().as_secs_f64());
-        }
+        std::hint::black_box(raw_loop16(ctx.vis, &rec));
+        raw16.push(rec.len() as f64 / t.elapsed().as_secs_f64());
     }
     debug_assert_eq!(rays as usize, rec.len());
     RatioLine {
@@ -268,7 +296,7 @@ pub fn ratio(ctx: &Context, choice: &EstimatorChoice, repeats: usize) -> RatioLi
         rays,
         stage: median(stage),
         raw: median(raw),
-        raw16: (!raw16.is_empty()).then(|| median(raw16)),
+        raw16: median(raw16),
         sampling,
     }
 }
@@ -296,15 +324,13 @@ pub fn format_ratios(lines: &[RatioLine], threads: usize) -> String {
     for l in lines {
         let _ = writeln!(
             o,
-            "{:<40} {:>8} {:>11} {:>13.3} {:>13.3} {:>15} {:>10.3} {:>16.3}",
+            "{:<40} {:>8} {:>11} {:>13.3} {:>13.3} {:>15.3} {:>10.3} {:>16.3}",
             l.estimator,
             l.patches,
             l.rays,
             l.stage / 1e6,
             l.raw / 1e6,
-            l.raw16
-                .map(|r| format!("{:.3}", r / 1e6))
-                .unwrap_or_else(|| "-".into()),
+            l.raw16 / 1e6,
             l.ratio(),
             l.sampling / 1e6
         );

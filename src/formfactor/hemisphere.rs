@@ -24,7 +24,7 @@ use glam::Vec3;
 
 use super::{Context, Entry, Estimator, Row};
 use crate::sampling::{unit_f32, Wy};
-use crate::visibility::{Ray, NO_HIT};
+use crate::visibility::{Rays, NO_HIT};
 
 /// Fraction of an origin's distance to the patch centroid by which it is pulled inward.
 const PULL: f32 = 1.0 / 16384.0;
@@ -92,7 +92,9 @@ impl Estimator for Hemisphere {
 
     fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
         let vis = ctx.vis;
-        self.row_with(ctx, i, row, &mut |rays, out| vis.first_hits_from(rays, out));
+        self.row_with(ctx, i, row, &mut |rays, out| {
+            vis.first_front_hits_soa(rays, out)
+        });
     }
 }
 
@@ -151,10 +153,12 @@ struct Scratch {
     /// Cells of the `s x s` grid, `(column, row)` as floats, for `cells_of` strata.
     cells: [Vec<f32>; 2],
     cells_of: usize,
+    /// Direction cells in Z-order (Morton order of `(column, row)`), as floats.
+    zc: [Vec<f32>; 2],
     /// Random permutation pairing position strata with direction strata, and the
-    /// direction cells it picks.
+    /// position cells it picks.
     perm: Vec<u32>,
-    cd: [Vec<f32>; 2],
+    pc: [Vec<f32>; 2],
     /// Random words of one replicate, two per ray.
     words: Vec<u64>,
     /// Unit-square coordinates of positions and of directions, one replicate's worth.
@@ -162,8 +166,9 @@ struct Scratch {
     /// Points on the patch and local directions.
     x: [Vec<f32>; 3],
     d: [Vec<f32>; 3],
-    /// Rays `(origin, direction)` of one replicate, and what they hit.
-    rays: Vec<Ray>,
+    /// Rays of one replicate in world space (origins, directions), and what they hit.
+    org: [Vec<f32>; 3],
+    dir: [Vec<f32>; 3],
     hits: Vec<u32>,
     /// Hit tallies `counts[j * reps + r]` for patches `j < n` and a spare slot `j = n`
     /// that takes misses; all zero between rows. `seen[j] == row` (the running row number
@@ -182,16 +187,17 @@ thread_local! {
 
 impl Hemisphere {
     /// Row `i` with `first_hits(rays, out)` answering the closest-hit query for a batch of
-    /// rays `(origin, unit direction)` (origins already offset off patch i, see
-    /// [`crate::visibility::Visibility::first_hit_origin`]): `out[k]` is the patch ray k hits
-    /// first, or [`NO_HIT`]. One batch per replicate; the rays asked for do not depend on the
+    /// rays (structure of arrays; origins already offset off patch i, see
+    /// [`crate::visibility::Visibility::first_hit_origin`]): `out[k]` is the patch whose
+    /// front side ray k meets first, or [`NO_HIT`] (see
+    /// [`crate::visibility::Visibility::first_front_hits_soa`]). One batch per replicate; the rays asked for do not depend on the
     /// answers, so a recorder sees the exact ray set.
     pub fn row_with(
         &self,
         ctx: &Context,
         i: usize,
         row: &mut Row,
-        first_hits: &mut dyn FnMut(&[Ray], &mut [u32]),
+        first_hits: &mut dyn FnMut(&Rays, &mut [u32]),
     ) {
         SCRATCH.with(|s| {
             let s = &mut s.borrow_mut();
@@ -208,7 +214,7 @@ impl Hemisphere {
         ctx: &Context,
         i: usize,
         row: &mut Row,
-        first_hits: &mut dyn FnMut(&[Ray], &mut [u32]),
+        first_hits: &mut dyn FnMut(&Rays, &mut [u32]),
         s: &mut Scratch,
     ) {
         let p = ctx.patches;
@@ -237,9 +243,11 @@ impl Hemisphere {
         let n = p.len();
         // One replicate at a time (its buffers stay in the L1 cache next to Embree's).
         for r in 0..reps {
-            // Unit-square coordinates: a jittered position in stratum k, and a jittered
-            // direction in stratum perm[k] of a fresh random permutation (Fisher-Yates),
-            // from the (seed, i, replicate) stream.
+            // Ray k leaves a jittered point of position cell perm[k] in a jittered
+            // direction of direction cell k, the direction cells taken in Z-order: a
+            // random pairing of the two stratifications (Fisher-Yates permutation from the
+            // (seed, i, replicate) stream), with consecutive rays close in direction, so
+            // that each packet of 16 is coherent.
             let mut rng = Wy::keyed(ctx.seed, i as u64, u64::MAX, r as u64);
             let perm = &mut s.perm[..m];
             for (k, q) in perm.iter_mut().enumerate() {
@@ -255,44 +263,47 @@ impl Hemisphere {
                 }
                 k = k.saturating_sub(2);
             }
-            // Two words per ray, in the order the jitter takes them, then converted in a
-            // vector pass: word 2k jitters the position, word 2k + 1 the direction.
+            // Two words per ray, then converted in a vector pass: word 2k jitters the
+            // position, word 2k + 1 the direction.
             rng.fill(&mut s.words[..2 * m]);
             let [c0, c1] = &s.cells;
             let (c0, c1) = (&c0[..m], &c1[..m]);
-            let [cd0, cd1] = &mut s.cd;
-            let (cd0, cd1) = (&mut cd0[..m], &mut cd1[..m]);
+            let [pc0, pc1] = &mut s.pc;
+            let (pc0, pc1) = (&mut pc0[..m], &mut pc1[..m]);
             for k in 0..m {
                 let c = perm[k] as usize;
-                cd0[k] = c0[c];
-                cd1[k] = c1[c];
+                pc0[k] = c0[c];
+                pc1[k] = c1[c];
             }
-            jitter(&s.cells, &s.cd, &s.words[..2 * m], inv, &mut s.u);
+            jitter(&s.pc, &s.zc, &s.words[..2 * m], inv, &mut s.u);
             on_i.points32(&s.u[0][..m], &s.u[1][..m], &mut s.x);
             cosine_directions(&s.u[2][..m], &s.u[3][..m], &mut s.d);
             // World directions (unit up to rounding: the basis is orthonormal), origins
             // offset along the normal: every direction leaves the front side (z >= 0).
-            let [x0, x1, x2] = &s.x;
-            let (x0, x1, x2) = (&x0[..m], &x1[..m], &x2[..m]);
-            let [d0, d1, d2] = &s.d;
-            let (d0, d1, d2) = (&d0[..m], &d1[..m], &d2[..m]);
-            for (k, ray) in s.rays[..m].iter_mut().enumerate() {
-                let w = t * d0[k] + b * d1[k] + n_i * d2[k];
-                let x = Vec3::new(x0[k], x1[k], x2[k]);
-                *ray = (x + (centroid - x) * PULL + off, w);
-            }
-            first_hits(&s.rays[..m], &mut s.hits[..m]);
-            // Count front-face hits per (patch, replicate), without branches: a miss, a hit
-            // on patch i itself or on a back face counts in the spare slot n, and the
-            // patches seen in this row are listed once each (`seen[j] == row`).
+            world(
+                &s.x,
+                &s.d,
+                (t, b, n_i),
+                centroid,
+                off,
+                &mut s.org,
+                &mut s.dir,
+            );
+            let (o, d) = (&s.org, &s.dir);
+            let rays = Rays {
+                org: [&o[0][..m], &o[1][..m], &o[2][..m]],
+                dir: [&d[0][..m], &d[1][..m], &d[2][..m]],
+            };
+            first_hits(&rays, &mut s.hits[..m]);
+            // Count front-side hits per (patch, replicate), without branches: a miss (or a
+            // back side met first) and a hit on patch i itself count in the spare slot n,
+            // and the patches seen in this row are listed once each (`seen[j] == row`).
             let (seen, counts, touched) = (&mut s.seen[..], &mut s.counts[..], &mut s.touched);
             let row_stamp = s.row;
             let mut t_len = s.t_len;
-            for (&j, ray) in s.hits[..m].iter().zip(&s.rays[..m]) {
+            for &j in &s.hits[..m] {
                 let jj = (j as usize).min(n);
-                let nj = p.normal[jj.min(n - 1)];
-                let front = (jj < n) & (jj != i) & (nj.dot(ray.1) < 0.0);
-                let slot = if front { jj } else { n };
+                let slot = if jj != i { jj } else { n };
                 counts[slot * reps + r] += 1;
                 let fresh = seen[slot] != row_stamp;
                 seen[slot] = row_stamp;
@@ -345,25 +356,43 @@ impl Hemisphere {
     }
 }
 
+/// World-space rays from local points `x` and local directions `d` (frame `(t, b, n)`,
+/// z along the normal): origins pulled toward the centroid by [`PULL`] and offset by
+/// `off`, into `org`/`dir` (structure of arrays).
+#[inline(always)]
+fn world(
+    x: &[Vec<f32>; 3],
+    d: &[Vec<f32>; 3],
+    (t, b, n): (Vec3, Vec3, Vec3),
+    centroid: Vec3,
+    off: Vec3,
+    org: &mut [Vec<f32>; 3],
+    dir: &mut [Vec<f32>; 3],
+) {
+    let len = x[0].len().min(org[0].len());
+    let (x0, x1, x2) = (&x[0][..len], &x[1][..len], &x[2][..len]);
+    let (d0, d1, d2) = (&d[0][..len], &d[1][..len], &d[2][..len]);
+    let [o0, o1, o2] = org;
+    let (o0, o1, o2) = (&mut o0[..len], &mut o1[..len], &mut o2[..len]);
+    let [w0, w1, w2] = dir;
+    let (w0, w1, w2) = (&mut w0[..len], &mut w1[..len], &mut w2[..len]);
+    for k in 0..len {
+        let w = t * d0[k] + b * d1[k] + n * d2[k];
+        let x = Vec3::new(x0[k], x1[k], x2[k]);
+        let o = x + (centroid - x) * PULL + off;
+        (o0[k], o1[k], o2[k]) = (o.x, o.y, o.z);
+        (w0[k], w1[k], w2[k]) = (w.x, w.y, w.z);
+    }
+}
+
 /// Unit-square coordinates of one replicate's rays into `u = [x_u, x_v, d_u, d_v]`: the
-/// position of ray k jittered in cell `cells[.][k]`, its direction in cell `cd[.][k]`, by
+/// position of ray k jittered in cell `pc[.][k]`, its direction in cell `dc[.][k]`, by
 /// the 24-bit uniforms ([`unit_f32`]) of the halves of `words[2k]` (position) and
 /// `words[2k + 1]` (direction), all scaled by `inv = 1 / strata`.
 #[inline(always)]
-fn jitter(
-    cells: &[Vec<f32>; 2],
-    cd: &[Vec<f32>; 2],
-    words: &[u64],
-    inv: f32,
-    u: &mut [Vec<f32>; 4],
-) {
+fn jitter(pc: &[Vec<f32>; 2], dc: &[Vec<f32>; 2], words: &[u64], inv: f32, u: &mut [Vec<f32>; 4]) {
     let len = words.len() / 2;
-    let (c0, c1, e0, e1) = (
-        &cells[0][..len],
-        &cells[1][..len],
-        &cd[0][..len],
-        &cd[1][..len],
-    );
+    let (c0, c1, e0, e1) = (&pc[0][..len], &pc[1][..len], &dc[0][..len], &dc[1][..len]);
     let [u0, u1, u2, u3] = u;
     let (u0, u1, u2, u3) = (
         &mut u0[..len],
@@ -401,6 +430,23 @@ impl Scratch {
                     c1.push(b as f32);
                 }
             }
+            // Z-order: cells sorted by the Morton code of (column, row), so that every run
+            // of 4^k consecutive cells is a 2^k x 2^k block when st is a power of 2.
+            let morton = |c: usize| {
+                let (a, b) = ((c % st) as u64, (c / st) as u64);
+                (0..32).fold(0u64, |z, bit| {
+                    z | ((a >> bit) & 1) << (2 * bit) | ((b >> bit) & 1) << (2 * bit + 1)
+                })
+            };
+            let mut order: Vec<usize> = (0..st * st).collect();
+            order.sort_by_key(|&c| morton(c));
+            let [z0, z1] = &mut self.zc;
+            z0.clear();
+            z1.clear();
+            for c in order {
+                z0.push(c0[c]);
+                z1.push(c1[c]);
+            }
             self.cells_of = st;
         }
         self.perm.resize(st * st, 0);
@@ -410,12 +456,13 @@ impl Scratch {
             .iter_mut()
             .chain(&mut self.x)
             .chain(&mut self.d)
-            .chain(&mut self.cd)
+            .chain(&mut self.pc)
+            .chain(&mut self.org)
+            .chain(&mut self.dir)
         {
             v.resize(len, 0.0);
         }
         self.hits.resize(len, NO_HIT);
-        self.rays.resize(len, (Vec3::ZERO, Vec3::ZERO));
     }
 }
 
