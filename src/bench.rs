@@ -266,30 +266,46 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// Shortest timed sample: a sample repeats its loop until it lasts about this long, so that
+/// short stages are not timed at the resolution of scheduler noise.
+const MIN_SAMPLE: f64 = 0.2;
+
 /// Times the form-factor stage of `choice` against the raw loops over the same rays,
-/// alternating, `repeats` times each, on the current rayon pool.
+/// alternating, `repeats` samples each, on the current rayon pool. Every sample runs its
+/// loop `k` times back to back, `k` chosen once (from a first, untimed stage run) so that a
+/// sample lasts about [`MIN_SAMPLE`]; the rates are medians over the samples.
 pub fn ratio(ctx: &Context, choice: &EstimatorChoice, repeats: usize) -> RatioLine {
     let est = choice.build();
     let t = Instant::now();
     let (_, made) = replay(ctx, choice, false);
     let sampling = made as f64 / t.elapsed().as_secs_f64();
     let rec = record(ctx, choice);
-    let (mut stage, mut raw, mut raw16) = (Vec::new(), Vec::new(), Vec::new());
-    let mut rays = 0;
-    for _ in 0..repeats.max(1) {
-        let t = Instant::now();
-        let ff = formfactor::compute(ctx, est.as_ref(), &|_| {});
-        stage.push(ff.rays as f64 / t.elapsed().as_secs_f64());
-        rays = ff.rays;
-        drop(ff);
-        let t = Instant::now();
-        std::hint::black_box(raw_loop(ctx.vis, &rec));
-        raw.push(rec.len() as f64 / t.elapsed().as_secs_f64());
-        let t = Instant::now();
-        std::hint::black_box(raw_loop16(ctx.vis, &rec));
-        raw16.push(rec.len() as f64 / t.elapsed().as_secs_f64());
-    }
+    let t = Instant::now();
+    let rays = formfactor::compute(ctx, est.as_ref(), &|_| {}).rays;
+    let k = (MIN_SAMPLE / t.elapsed().as_secs_f64())
+        .ceil()
+        .clamp(1.0, 1000.0) as usize;
     debug_assert_eq!(rays as usize, rec.len());
+    let per = (k as u64 * rays) as f64;
+    let time = |f: &dyn Fn()| {
+        let t = Instant::now();
+        for _ in 0..k {
+            f();
+        }
+        per / t.elapsed().as_secs_f64()
+    };
+    let (mut stage, mut raw, mut raw16) = (Vec::new(), Vec::new(), Vec::new());
+    for _ in 0..repeats.max(1) {
+        stage.push(time(&|| {
+            drop(formfactor::compute(ctx, est.as_ref(), &|_| {}))
+        }));
+        raw.push(time(&|| {
+            std::hint::black_box(raw_loop(ctx.vis, &rec));
+        }));
+        raw16.push(time(&|| {
+            std::hint::black_box(raw_loop16(ctx.vis, &rec));
+        }));
+    }
     RatioLine {
         estimator: est.name(),
         patches: ctx.patches.len(),

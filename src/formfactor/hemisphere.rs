@@ -170,12 +170,14 @@ struct Scratch {
     org: [Vec<f32>; 3],
     dir: [Vec<f32>; 3],
     hits: Vec<u32>,
-    /// Hit tallies `counts[j * reps + r]` for patches `j < n` and a spare slot `j = n`
+    /// Hit tallies `counts[r * (n + 1) + j]` for patches `j < n` and a spare slot `j = n`
     /// that takes misses; all zero between rows. `seen[j] == row` (the running row number
     /// of this thread) when `j` was hit in this row; `touched[..t_len]` lists those `j`
     /// in first-hit order.
     counts: Vec<u32>,
     seen: Vec<u32>,
+    /// Per patch, the OR of its tallies over the replicates (the dense scan).
+    any: Vec<u32>,
     row: u32,
     touched: Vec<u32>,
     t_len: usize,
@@ -241,6 +243,9 @@ impl Hemisphere {
         }
         s.t_len = 0;
         let n = p.len();
+        // Tallies found by a scan after the row when that reads at most four words per ray
+        // cast (a word scanned costs a few hundredths of a ray traced).
+        let dense = n <= 4 * m;
         // One replicate at a time (its buffers stay in the L1 cache next to Embree's).
         for r in 0..reps {
             // Ray k leaves a jittered point of position cell perm[k] in a jittered
@@ -296,28 +301,54 @@ impl Hemisphere {
             };
             first_hits(&rays, &mut s.hits[..m]);
             // Count front-side hits per (patch, replicate), without branches: a miss (or a
-            // back side met first) and a hit on patch i itself count in the spare slot n,
-            // and the patches seen in this row are listed once each (`seen[j] == row`).
-            let (seen, counts, touched) = (&mut s.seen[..], &mut s.counts[..], &mut s.touched);
-            let row_stamp = s.row;
-            let mut t_len = s.t_len;
-            for &j in &s.hits[..m] {
-                let jj = (j as usize).min(n);
-                let slot = if jj != i { jj } else { n };
-                counts[slot * reps + r] += 1;
-                let fresh = seen[slot] != row_stamp;
-                seen[slot] = row_stamp;
-                touched[t_len] = slot as u32;
-                t_len += fresh as usize;
+            // back side met first) and a hit on patch i itself count in the spare slot n.
+            // In a scene of many patches, those hit in this row are listed once each as
+            // they come (`seen[j] == row`); in a small one, a scan of the tallies finds
+            // them after the row for less.
+            let counts = &mut s.counts[r * (n + 1)..(r + 1) * (n + 1)];
+            if dense {
+                for &j in &s.hits[..m] {
+                    let jj = (j as usize).min(n);
+                    let slot = if jj != i { jj } else { n };
+                    counts[slot] += 1;
+                }
+            } else {
+                let (seen, touched) = (&mut s.seen[..], &mut s.touched);
+                let row_stamp = s.row;
+                let mut t_len = s.t_len;
+                for &j in &s.hits[..m] {
+                    let jj = (j as usize).min(n);
+                    let slot = if jj != i { jj } else { n };
+                    counts[slot] += 1;
+                    let fresh = seen[slot] != row_stamp;
+                    seen[slot] = row_stamp;
+                    touched[t_len] = slot as u32;
+                    t_len += fresh as usize;
+                }
+                s.t_len = t_len;
             }
-            s.t_len = t_len;
         }
         row.rays += (m * reps) as u64;
         // Entries in column order (the matrix assembly then finds each row sorted), mean
         // and variance of the replicate means from exact integer sums: with S = Σ c_r and
         // Q = Σ c_r², Var = (R Q - S²) / (R (R - 1) m²).
         let t_len = s.t_len;
-        let order = if t_len * 8 >= n {
+        let order = if dense {
+            // The patches with a nonzero tally, in order (written over `touched`).
+            let any = &mut s.any[..n];
+            any.copy_from_slice(&s.counts[..n]);
+            for t in s.counts.chunks_exact(n + 1).take(reps).skip(1) {
+                for (a, &v) in any.iter_mut().zip(&t[..n]) {
+                    *a |= v;
+                }
+            }
+            let mut c = 0;
+            for (j, &a) in any.iter().enumerate() {
+                s.touched[c] = j as u32;
+                c += (a != 0) as usize;
+            }
+            &s.touched[..c]
+        } else if t_len * 8 >= n {
             // Most patches were hit: a scan of the stamps lists them in order for less than
             // a sort (written over `touched`, which the scan does not read).
             let mut c = 0;
@@ -338,21 +369,29 @@ impl Hemisphere {
             1.0 / (m as f64 * rf),
             1.0 / (rf * rf * (rf - 1.0) * (m as f64).powi(2)),
         );
+        let start = row.entries.len();
         row.entries.reserve(order.len());
         for &j in order {
-            let c = &mut s.counts[j as usize * reps..(j as usize + 1) * reps];
-            let (sum, sq) = c.iter().fold((0i64, 0i64), |(a, q), &c| {
-                (a + c as i64, q + c as i64 * c as i64)
-            });
-            // Back to zero for the next row.
-            c.fill(0);
+            let (mut sum, mut sq) = (0i64, 0i64);
+            for t in s.counts.chunks_exact_mut(n + 1).take(reps) {
+                let c = t[j as usize] as i64;
+                (sum, sq) = (sum + c, sq + c * c);
+                // Back to zero for the next row.
+                t[j as usize] = 0;
+            }
             row.entries.push(Entry {
                 j,
                 f: sum as f64 * inv_mr,
-                se: ((reps as i64 * sq - sum * sum) as f64 * inv_se2).sqrt(),
+                se: (reps as i64 * sq - sum * sum) as f64 * inv_se2,
             });
         }
-        s.counts[n * reps..(n + 1) * reps].fill(0);
+        // Square roots in a pass of their own (independent, so they overlap).
+        for e in &mut row.entries[start..] {
+            e.se = e.se.sqrt();
+        }
+        for t in s.counts.chunks_exact_mut(n + 1).take(reps) {
+            t[n] = 0;
+        }
     }
 }
 
@@ -416,6 +455,7 @@ impl Scratch {
         if self.seen.len() < n + 1 {
             self.seen.resize(n + 1, 0);
             self.touched.resize(n + 1, 0);
+            self.any.resize(n + 1, 0);
         }
         if self.counts.len() < (n + 1) * reps {
             self.counts.resize((n + 1) * reps, 0);
