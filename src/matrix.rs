@@ -149,24 +149,23 @@ impl CsrBuilder {
     }
 
     /// Appends the rows of a block, each already in column order without duplicates (as
-    /// [`sort_row`] leaves it), copying them in parallel on the current rayon pool.
+    /// [`sort_row`] leaves it), copying them in parallel on the current rayon pool straight
+    /// into the arrays' spare capacity (no zero fill first: the pages are first touched by
+    /// the threads that fill them).
+    #[allow(unsafe_code)]
     pub fn push_rows(&mut self, rows: &[Vec<Entry>]) {
         debug_assert!(rows.iter().all(|r| r.windows(2).all(|w| w[0].j < w[1].j)));
         let base = self.indices.len();
         let nnz: usize = rows.iter().map(Vec::len).sum();
-        grow(&mut self.indices, base + nnz);
-        grow(&mut self.data, base + nnz);
-        grow(&mut self.se, base + nnz);
+        self.reserve(nnz);
         let mut end = base;
         for r in rows {
             end += r.len();
             self.indptr.push(end);
         }
-        let (mut ix, mut dx, mut sx) = (
-            &mut self.indices[base..],
-            &mut self.data[base..],
-            &mut self.se[base..],
-        );
+        let mut ix = &mut self.indices.spare_capacity_mut()[..nnz];
+        let mut dx = &mut self.data.spare_capacity_mut()[..nnz];
+        let mut sx = &mut self.se.spare_capacity_mut()[..nnz];
         let mut parts = Vec::with_capacity(rows.len());
         for r in rows {
             let (a, rest) = std::mem::take(&mut ix).split_at_mut(r.len());
@@ -179,11 +178,18 @@ impl CsrBuilder {
         }
         parts.into_par_iter().for_each(|(r, ix, dx, sx)| {
             for (k, e) in r.iter().enumerate() {
-                ix[k] = e.j as usize;
-                dx[k] = e.f;
-                sx[k] = e.se;
+                ix[k].write(e.j as usize);
+                dx[k].write(e.f);
+                sx[k].write(e.se);
             }
         });
+        // SAFETY: the `nnz` slots after `base` of each array were all written just above
+        // (the rows' slices partition them), and `reserve` made room for them.
+        unsafe {
+            self.indices.set_len(base + nnz);
+            self.data.set_len(base + nnz);
+            self.se.set_len(base + nnz);
+        }
     }
 
     /// The whole matrix from its upper triangle: `rows[i]` holds the entries `F_ij` with
