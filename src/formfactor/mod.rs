@@ -78,8 +78,9 @@ pub trait Estimator: Sync {
 
 /// Rows computed in parallel per block before they are appended to the CSR arrays (and
 /// freed), for estimators that are not [`Estimator::upper_only`]: bounds the memory held
-/// in per-row vectors, and lets the next block reuse it (memory the kernel must hand out
-/// and zero afresh cost 20% of the 32 x 32 cube's stage with one block of 8192 rows).
+/// in per-row vectors, and lets the next block reuse it: fresh pages, which the kernel
+/// zeroes on first touch, were 22% of the 32 x 32 cube's stage profile with blocks of 8192
+/// rows and 10% with 1024.
 pub const BLOCK_ROWS: usize = 1024;
 
 /// Wall-clock split of [`compute_timed`].
