@@ -139,6 +139,44 @@ pub fn unit_f32(x: u32) -> f32 {
     (x >> 8) as f32 * (1.0 / 16_777_216.0)
 }
 
+/// Unit-square coordinates from random words, four per pair of words, into `u`: coordinate
+/// c of sample k is `(cells[c][k] + unit_f32(h)) * inv`, `h` the c-th 32-bit half of
+/// `words[2k]`, `words[2k + 1]` (low half first), or `unit_f32(h)` alone when there are no
+/// cells. A loop the compiler vectorizes; the words come first from [`Wy::fill`].
+#[inline(always)]
+pub fn jitter4(words: &[u64], cells: Option<[&[f32]; 4]>, inv: f32, u: &mut [Vec<f32>; 4]) {
+    let len = words.len() / 2;
+    let [u0, u1, u2, u3] = u;
+    let (u0, u1, u2, u3) = (
+        &mut u0[..len],
+        &mut u1[..len],
+        &mut u2[..len],
+        &mut u3[..len],
+    );
+    let w = &words[..2 * len];
+    match cells {
+        Some([c0, c1, c2, c3]) => {
+            let (c0, c1, c2, c3) = (&c0[..len], &c1[..len], &c2[..len], &c3[..len]);
+            for k in 0..len {
+                let (w0, w1) = (w[2 * k], w[2 * k + 1]);
+                u0[k] = (c0[k] + unit_f32(w0 as u32)) * inv;
+                u1[k] = (c1[k] + unit_f32((w0 >> 32) as u32)) * inv;
+                u2[k] = (c2[k] + unit_f32(w1 as u32)) * inv;
+                u3[k] = (c3[k] + unit_f32((w1 >> 32) as u32)) * inv;
+            }
+        }
+        None => {
+            for k in 0..len {
+                let (w0, w1) = (w[2 * k], w[2 * k + 1]);
+                u0[k] = unit_f32(w0 as u32);
+                u1[k] = unit_f32((w0 >> 32) as u32);
+                u2[k] = unit_f32(w1 as u32);
+                u3[k] = unit_f32((w1 >> 32) as u32);
+            }
+        }
+    }
+}
+
 /// Jittered samples on an `s x s` grid of strata of the unit square, in stratum order.
 pub fn jittered(rng: &mut Pcg32, s: usize, out: &mut Vec<(f64, f64)>) {
     out.clear();

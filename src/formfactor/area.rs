@@ -40,7 +40,7 @@ use super::{Context, Entry, Estimator, Row};
 use std::f64::consts::FRAC_1_PI;
 
 use crate::mesh::PatchSampler;
-use crate::sampling::{unit_f32, Wy};
+use crate::sampling::{jitter4, Wy};
 use crate::visibility::Segments;
 
 /// How points are placed on each patch.
@@ -321,18 +321,8 @@ impl AreaMc {
                 let inv = 1.0 / (m as f32).sqrt().sqrt().round();
                 self.words(seed, a, b, m, reps, &mut s.words);
                 let [c0, c1, c2, c3] = &s.cells;
-                let (c0, c1, c2, c3) = (&c0[..len], &c1[..len], &c2[..len], &c3[..len]);
-                let [u0, u1, u2, u3] = &mut s.u;
-                let (u0, u1) = (&mut u0[..len], &mut u1[..len]);
-                let (u2, u3) = (&mut u2[..len], &mut u3[..len]);
-                let w = &s.words[..2 * len];
-                for k in 0..len {
-                    let (w0, w1) = (w[2 * k], w[2 * k + 1]);
-                    u0[k] = (c0[k] + unit_f32(w0 as u32)) * inv;
-                    u1[k] = (c1[k] + unit_f32((w0 >> 32) as u32)) * inv;
-                    u2[k] = (c2[k] + unit_f32(w1 as u32)) * inv;
-                    u3[k] = (c3[k] + unit_f32((w1 >> 32) as u32)) * inv;
-                }
+                let cells = [&c0[..len], &c1[..len], &c2[..len], &c3[..len]];
+                jitter4(&s.words[..2 * len], Some(cells), inv, &mut s.u);
             }
             Pattern::Sobol => {
                 let pair = Wy::keyed(seed, a as u64, b as u64, 0);
@@ -349,17 +339,7 @@ impl AreaMc {
             }
             Pattern::Uniform => {
                 self.words(seed, a, b, m, reps, &mut s.words);
-                let [u0, u1, u2, u3] = &mut s.u;
-                let (u0, u1) = (&mut u0[..len], &mut u1[..len]);
-                let (u2, u3) = (&mut u2[..len], &mut u3[..len]);
-                let w = &s.words[..2 * len];
-                for k in 0..len {
-                    let (w0, w1) = (w[2 * k], w[2 * k + 1]);
-                    u0[k] = unit_f32(w0 as u32);
-                    u1[k] = unit_f32((w0 >> 32) as u32);
-                    u2[k] = unit_f32(w1 as u32);
-                    u3[k] = unit_f32((w1 >> 32) as u32);
-                }
+                jitter4(&s.words[..2 * len], None, 1.0, &mut s.u);
             }
         }
     }

@@ -23,7 +23,7 @@
 use glam::Vec3;
 
 use super::{Context, Entry, Estimator, Row};
-use crate::sampling::{unit_f32, Wy};
+use crate::sampling::{jitter4, Wy};
 use crate::visibility::{Rays, NO_HIT};
 
 /// Fraction of an origin's distance to the patch centroid by which it is pulled inward.
@@ -280,7 +280,10 @@ impl Hemisphere {
                 pc0[k] = c0[c];
                 pc1[k] = c1[c];
             }
-            jitter(&s.pc, &s.zc, &s.words[..2 * m], inv, &mut s.u);
+            // Positions jittered in their cells pc, directions in the Z-ordered cells zc.
+            let (pc, zc) = (&s.pc, &s.zc);
+            let cells = [&pc[0][..m], &pc[1][..m], &zc[0][..m], &zc[1][..m]];
+            jitter4(&s.words[..2 * m], Some(cells), inv, &mut s.u);
             on_i.points32(&s.u[0][..m], &s.u[1][..m], &mut s.x);
             cosine_directions(&s.u[2][..m], &s.u[3][..m], &mut s.d);
             // World directions (unit up to rounding: the basis is orthonormal), origins
@@ -422,30 +425,6 @@ fn world(
         let o = x + (centroid - x) * PULL + off;
         (o0[k], o1[k], o2[k]) = (o.x, o.y, o.z);
         (w0[k], w1[k], w2[k]) = (w.x, w.y, w.z);
-    }
-}
-
-/// Unit-square coordinates of one replicate's rays into `u = [x_u, x_v, d_u, d_v]`: the
-/// position of ray k jittered in cell `pc[.][k]`, its direction in cell `dc[.][k]`, by
-/// the 24-bit uniforms ([`unit_f32`]) of the halves of `words[2k]` (position) and
-/// `words[2k + 1]` (direction), all scaled by `inv = 1 / strata`.
-#[inline(always)]
-fn jitter(pc: &[Vec<f32>; 2], dc: &[Vec<f32>; 2], words: &[u64], inv: f32, u: &mut [Vec<f32>; 4]) {
-    let len = words.len() / 2;
-    let (c0, c1, e0, e1) = (&pc[0][..len], &pc[1][..len], &dc[0][..len], &dc[1][..len]);
-    let [u0, u1, u2, u3] = u;
-    let (u0, u1, u2, u3) = (
-        &mut u0[..len],
-        &mut u1[..len],
-        &mut u2[..len],
-        &mut u3[..len],
-    );
-    for k in 0..len {
-        let (wx, wd) = (words[2 * k], words[2 * k + 1]);
-        u0[k] = (c0[k] + unit_f32(wx as u32)) * inv;
-        u1[k] = (c1[k] + unit_f32((wx >> 32) as u32)) * inv;
-        u2[k] = (e0[k] + unit_f32(wd as u32)) * inv;
-        u3[k] = (e1[k] + unit_f32((wd >> 32) as u32)) * inv;
     }
 }
 
