@@ -6,6 +6,8 @@
 //!   casts (recorded once), with the same rayon thread pool;
 //! - `form factors/hemisphere` and `form factors/raw rtcIntersect1`: the same for
 //!   hemisphere shooting, whose raw loop is the closest-hit query;
+//! - `form factors/<estimator> raw packets of 16`: the same rays through `rtcOccluded16`
+//!   or `rtcIntersect16`, 16 consecutive rays per packet;
 //!
 //! and prints the ratio of their ray rates, measured interleaved in one run.
 
@@ -14,7 +16,7 @@ static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 
-use radiosity::bench::{format_ratios, ratio, raw_loop, record};
+use radiosity::bench::{format_ratios, ratio, raw_loop, raw_loop16, record};
 use radiosity::formfactor::{compute, Context};
 use radiosity::mesh::{PatchSet, Resolution};
 use radiosity::pipeline::EstimatorChoice;
@@ -61,6 +63,9 @@ fn bench(c: &mut Criterion) {
         g.throughput(Throughput::Elements(rays.len() as u64));
         g.bench_function(*name, |b| b.iter(|| compute(&ctx, est.as_ref(), &|_| {})));
         g.bench_function(*raw_name, |b| b.iter(|| raw_loop(&vis, &rays)));
+        g.bench_function(format!("{name} raw packets of 16"), |b| {
+            b.iter(|| raw_loop16(&vis, &rays))
+        });
     }
     g.finish();
 }
