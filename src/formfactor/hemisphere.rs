@@ -26,6 +26,10 @@ use super::{Context, Entry, Estimator, Row};
 use crate::sampling::{jitter4, Wy};
 use crate::visibility::{Rays, NO_HIT};
 
+/// Rays made, traced and counted together: a chunk's sampling buffers (about 3 KB) stay
+/// in the L1 cache beside Embree's traversal data.
+const CHUNK: usize = 64;
+
 /// Fraction of an origin's distance to the patch centroid by which it is pulled inward.
 const PULL: f32 = 1.0 / 16384.0;
 
@@ -280,55 +284,61 @@ impl Hemisphere {
                 pc0[k] = c0[c];
                 pc1[k] = c1[c];
             }
-            // Positions jittered in their cells pc, directions in the Z-ordered cells zc.
-            let (pc, zc) = (&s.pc, &s.zc);
-            let cells = [&pc[0][..m], &pc[1][..m], &zc[0][..m], &zc[1][..m]];
-            jitter4(&s.words[..2 * m], Some(cells), inv, &mut s.u);
-            on_i.points32(&s.u[0][..m], &s.u[1][..m], &mut s.x);
-            cosine_directions(&s.u[2][..m], &s.u[3][..m], &mut s.d);
-            // World directions (unit up to rounding: the basis is orthonormal), origins
-            // offset along the normal: every direction leaves the front side (z >= 0).
-            world(
-                &s.x,
-                &s.d,
-                (t, b, n_i),
-                centroid,
-                off,
-                &mut s.org,
-                &mut s.dir,
-            );
-            let (o, d) = (&s.org, &s.dir);
-            let rays = Rays {
-                org: [&o[0][..m], &o[1][..m], &o[2][..m]],
-                dir: [&d[0][..m], &d[1][..m], &d[2][..m]],
-            };
-            first_hits(&rays, &mut s.hits[..m]);
-            // Count front-side hits per (patch, replicate), without branches: a miss (or a
-            // back side met first) and a hit on patch i itself count in the spare slot n.
-            // In a scene of many patches, those hit in this row are listed once each as
-            // they come (`seen[j] == row`); in a small one, a scan of the tallies finds
-            // them after the row for less.
-            let counts = &mut s.counts[r * (n + 1)..(r + 1) * (n + 1)];
-            if dense {
-                for &j in &s.hits[..m] {
-                    let jj = (j as usize).min(n);
-                    let slot = if jj != i { jj } else { n };
-                    counts[slot] += 1;
+            // The replicate's rays in chunks of CHUNK, each made, traced and counted in
+            // turn, so that the sampling buffers stay small next to Embree's data.
+            for lo in (0..m).step_by(CHUNK) {
+                let hi = (lo + CHUNK).min(m);
+                let len = hi - lo;
+                // Positions jittered in their cells pc, directions in the Z-ordered cells.
+                let (pc, zc) = (&s.pc, &s.zc);
+                let cells = [
+                    &pc[0][lo..hi],
+                    &pc[1][lo..hi],
+                    &zc[0][lo..hi],
+                    &zc[1][lo..hi],
+                ];
+                jitter4(&s.words[2 * lo..2 * hi], Some(cells), inv, &mut s.u);
+                on_i.points32(&s.u[0][..len], &s.u[1][..len], &mut s.x);
+                cosine_directions(&s.u[2][..len], &s.u[3][..len], &mut s.d);
+                // World directions (unit up to rounding: the basis is orthonormal), origins
+                // offset along the normal: every direction leaves the front side (z >= 0).
+                let frame = (t, b, n_i);
+                world(
+                    len, &s.x, &s.d, frame, centroid, off, &mut s.org, &mut s.dir,
+                );
+                let (o, d) = (&s.org, &s.dir);
+                let rays = Rays {
+                    org: [&o[0][..len], &o[1][..len], &o[2][..len]],
+                    dir: [&d[0][..len], &d[1][..len], &d[2][..len]],
+                };
+                first_hits(&rays, &mut s.hits[..len]);
+                // Count front-side hits per (patch, replicate), without branches: a miss
+                // (or a back side met first) and a hit on patch i itself count in the
+                // spare slot n. In a scene of many patches, those hit in this row are
+                // listed once each as they come (`seen[j] == row`); in a small one, a scan
+                // of the tallies finds them after the row for less.
+                let counts = &mut s.counts[r * (n + 1)..(r + 1) * (n + 1)];
+                if dense {
+                    for &j in &s.hits[..len] {
+                        let jj = (j as usize).min(n);
+                        let slot = if jj != i { jj } else { n };
+                        counts[slot] += 1;
+                    }
+                } else {
+                    let (seen, touched) = (&mut s.seen[..], &mut s.touched);
+                    let row_stamp = s.row;
+                    let mut t_len = s.t_len;
+                    for &j in &s.hits[..len] {
+                        let jj = (j as usize).min(n);
+                        let slot = if jj != i { jj } else { n };
+                        counts[slot] += 1;
+                        let fresh = seen[slot] != row_stamp;
+                        seen[slot] = row_stamp;
+                        touched[t_len] = slot as u32;
+                        t_len += fresh as usize;
+                    }
+                    s.t_len = t_len;
                 }
-            } else {
-                let (seen, touched) = (&mut s.seen[..], &mut s.touched);
-                let row_stamp = s.row;
-                let mut t_len = s.t_len;
-                for &j in &s.hits[..m] {
-                    let jj = (j as usize).min(n);
-                    let slot = if jj != i { jj } else { n };
-                    counts[slot] += 1;
-                    let fresh = seen[slot] != row_stamp;
-                    seen[slot] = row_stamp;
-                    touched[t_len] = slot as u32;
-                    t_len += fresh as usize;
-                }
-                s.t_len = t_len;
             }
         }
         row.rays += (m * reps) as u64;
@@ -403,7 +413,9 @@ impl Hemisphere {
 /// z along the normal): origins pulled toward the centroid by [`PULL`] and offset by
 /// `off`, into `org`/`dir` (structure of arrays).
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn world(
+    len: usize,
     x: &[Vec<f32>; 3],
     d: &[Vec<f32>; 3],
     (t, b, n): (Vec3, Vec3, Vec3),
@@ -412,7 +424,6 @@ fn world(
     org: &mut [Vec<f32>; 3],
     dir: &mut [Vec<f32>; 3],
 ) {
-    let len = x[0].len().min(org[0].len());
     let (x0, x1, x2) = (&x[0][..len], &x[1][..len], &x[2][..len]);
     let (d0, d1, d2) = (&d[0][..len], &d[1][..len], &d[2][..len]);
     let [o0, o1, o2] = org;
