@@ -14,11 +14,15 @@
 //! the hemisphere, strata paired by a random permutation. `R` independent replicates give
 //! the standard error of each entry.
 //!
-//! Sampling runs in `f32` over whole batches (structure of arrays, 24 random bits per
+//! Sampling runs in `f32` over chunks of rays (structure of arrays, 24 random bits per
 //! coordinate from a counter-based [`Wy`] stream, a polynomial sine and cosine in the
-//! concentric map); hits are tallied per (patch, replicate) in dense per-thread arrays
-//! (`counts`, one slot per patch and replicate, reset lazily through a row stamp), so a row
-//! costs nothing per patch it does not hit.
+//! concentric map, compiled for AVX2 where available: [`crate::simd`]). The rays of a
+//! replicate go out in Z-order of their direction cells, so that each packet of 16 is
+//! coherent, and are traced 16 at a time (`rtcIntersect16`); the side of a patch a ray
+//! meets comes from the hit triangle's normal. Hits are tallied per (patch, replicate) in
+//! per-thread arrays kept zero between rows, and the patches hit are found by a scan of the
+//! tallies (small scenes) or listed as they come (large ones), so a row costs nothing per
+//! patch it does not hit.
 
 use glam::Vec3;
 
