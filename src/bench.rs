@@ -268,7 +268,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 
 /// Shortest timed sample: a sample repeats its loop until it lasts about this long, so that
 /// short stages are not timed at the resolution of scheduler noise.
-const MIN_SAMPLE: f64 = 0.2;
+pub const MIN_SAMPLE: f64 = 0.2;
 
 /// Times the form-factor stage of `choice` against the raw loops over the same rays,
 /// alternating, `repeats` samples each, on the current rayon pool. Every sample runs its

@@ -128,7 +128,7 @@ fn sin_cos_quarter(x: f32) -> (f32, f32) {
 
 /// [`cosine_direction`] in `f32` for every `(u[k], v[k])`, into `out = [x, y, z]`
 /// (local frame, z up): the concentric map with the octant chosen by selects, not branches,
-/// and a polynomial sine and cosine ([`sin_cos_quarter`]).
+/// and a polynomial sine and cosine (`sin_cos_quarter`).
 #[inline(always)]
 pub fn cosine_directions(u: &[f32], v: &[f32], out: &mut [Vec<f32>; 3]) {
     let len = u.len();
