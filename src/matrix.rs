@@ -467,26 +467,42 @@ impl FormFactors {
                 cursor[j] = c;
                 (c < hi && idx[c] == i).then_some(c)
             };
-            let (f_back, se_ji) = back.map_or((0.0, 0.0), |k| (self.f.data()[k], self.se[k]));
-            let fij = self.area[i] * f;
-            let fji = self.area[j] * f_back;
-            let m = fij.abs().max(fji.abs());
-            if m > 0.0 {
-                let gap = (fij - fji).abs();
-                d.reciprocity = d.reciprocity.max(gap / m);
-                if f.max(f_back) >= SIGNIFICANT {
-                    d.reciprocity_significant = d.reciprocity_significant.max(gap / m);
-                }
-                let se = (self.area[i] * se_ij).hypot(self.area[j] * se_ji);
+            if let Some(b) = self.reciprocity_of((i, j), (f, se_ij), back, &mut d) {
                 pairs += 1;
-                if gap > 3.0 * se && gap > 1e-12 * m {
-                    beyond += 1;
-                }
+                beyond += usize::from(b);
             }
         }
         d.reciprocity_beyond_3se = beyond as f64;
         d.nnz = pairs;
         d
+    }
+
+    /// Folds the reciprocity gap `|A_i F_ij - A_j F_ji|` of the stored entry `F_ij = f`
+    /// (standard error `se_ij`), whose back entry `F_ji` is at position `back` of the
+    /// arrays (`None`: not stored, 0), into `d.reciprocity` and
+    /// `d.reciprocity_significant`. Returns `None` when both sides are 0, else whether the
+    /// gap is beyond 3 combined standard errors.
+    fn reciprocity_of(
+        &self,
+        (i, j): (usize, usize),
+        (f, se_ij): (f64, f64),
+        back: Option<usize>,
+        d: &mut Diagnostics,
+    ) -> Option<bool> {
+        let (f_back, se_ji) = back.map_or((0.0, 0.0), |k| (self.f.data()[k], self.se[k]));
+        let fij = self.area[i] * f;
+        let fji = self.area[j] * f_back;
+        let m = fij.abs().max(fji.abs());
+        if m <= 0.0 {
+            return None;
+        }
+        let gap = (fij - fji).abs();
+        d.reciprocity = d.reciprocity.max(gap / m);
+        if f.max(f_back) >= SIGNIFICANT {
+            d.reciprocity_significant = d.reciprocity_significant.max(gap / m);
+        }
+        let se = (self.area[i] * se_ij).hypot(self.area[j] * se_ji);
+        Some(gap > 3.0 * se && gap > 1e-12 * m)
     }
 
     /// The matrix as triplets, for writers.
@@ -526,7 +542,7 @@ mod tests {
     }
 
     /// The diagnostics with a binary search per back entry, row by row: the reference for
-    /// the cursor walk of `FormFactors::diagnostics`.
+    /// the cursor walk of `FormFactors::diagnostics` (the same per-pair figures).
     fn diagnostics_by_search(ff: &FormFactors) -> Diagnostics {
         let mut d = Diagnostics {
             min_row_sum: f64::INFINITY,
@@ -544,18 +560,9 @@ mod tests {
             d.min_row_sum = d.min_row_sum.min(s);
             for (k, (j, &f)) in row.iter().enumerate() {
                 let back = ff.f.nnz_index(j, i).map(|k| k.0);
-                let (f_back, se_ji) = back.map_or((0.0, 0.0), |k| (ff.f.data()[k], ff.se[k]));
-                let (fij, fji) = (ff.area[i] * f, ff.area[j] * f_back);
-                let m = fij.abs().max(fji.abs());
-                if m > 0.0 {
-                    let gap = (fij - fji).abs();
-                    d.reciprocity = d.reciprocity.max(gap / m);
-                    if f.max(f_back) >= SIGNIFICANT {
-                        d.reciprocity_significant = d.reciprocity_significant.max(gap / m);
-                    }
-                    let se = (ff.area[i] * ff.se[lo + k]).hypot(ff.area[j] * se_ji);
+                if let Some(b) = ff.reciprocity_of((i, j), (f, ff.se[lo + k]), back, &mut d) {
                     pairs += 1;
-                    beyond += usize::from(gap > 3.0 * se && gap > 1e-12 * m);
+                    beyond += usize::from(b);
                 }
             }
         }
