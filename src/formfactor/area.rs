@@ -41,7 +41,7 @@ use std::f64::consts::FRAC_1_PI;
 
 use crate::mesh::PatchSampler;
 use crate::sampling::{jitter4, Wy};
-use crate::visibility::Segments;
+use crate::visibility::{Rays, Segments};
 
 /// How points are placed on each patch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -272,8 +272,10 @@ impl AreaMc {
         s.seen.resize(len, false);
         let (o, d) = (&s.org, &s.dir);
         let segs = Segments {
-            org: [&o[0][..n], &o[1][..n], &o[2][..n]],
-            dir: [&d[0][..n], &d[1][..n], &d[2][..n]],
+            rays: Rays {
+                org: [&o[0][..n], &o[1][..n], &o[2][..n]],
+                dir: [&d[0][..n], &d[1][..n], &d[2][..n]],
+            },
             tfar: SEGMENT_TFAR,
         };
         visible(&segs, &mut s.seen[..n]);

@@ -77,6 +77,31 @@ struct PaddedRayHit {
     _spare: [u32; 8],
 }
 
+/// Copies up to 16 origins and directions (structure of arrays, `org[0].len()` rays) into
+/// the first lanes of a packet; a full packet's lanes are copied whole.
+#[inline(always)]
+fn load_lanes(r: &mut sys::RTCRay16, org: [&[f32]; 3], dir: [&[f32]; 3]) {
+    let n = org[0].len();
+    let lanes = [
+        &mut r.org_x,
+        &mut r.org_y,
+        &mut r.org_z,
+        &mut r.dir_x,
+        &mut r.dir_y,
+        &mut r.dir_z,
+    ];
+    for (lane, src) in lanes
+        .into_iter()
+        .zip([org[0], org[1], org[2], dir[0], dir[1], dir[2]])
+    {
+        if let Ok(full) = <&[f32; 16]>::try_from(src) {
+            *lane = *full;
+        } else {
+            lane[..n].copy_from_slice(&src[..n]);
+        }
+    }
+}
+
 /// Sign of Embree's geometric normal `Ng` relative to the winding normal
 /// `(v1 - v0) x (v2 - v0)` of a triangle (checked by `ng_sign_is_embree_convention`).
 const NG_SIGN: f32 = 1.0;
@@ -285,12 +310,7 @@ impl EmbreeScene {
         let mut packet = sys::RTCRay16::default();
         let mut valid = Valid16([0i32; 16]);
         valid.0[..n].fill(-1);
-        packet.org_x[..n].copy_from_slice(org[0]);
-        packet.org_y[..n].copy_from_slice(&org[1][..n]);
-        packet.org_z[..n].copy_from_slice(&org[2][..n]);
-        packet.dir_x[..n].copy_from_slice(&dir[0][..n]);
-        packet.dir_y[..n].copy_from_slice(&dir[1][..n]);
-        packet.dir_z[..n].copy_from_slice(&dir[2][..n]);
+        load_lanes(&mut packet, org, dir);
         packet.tfar[..n].fill(tfar);
         // SAFETY: as in `occluded16_with`: committed scene, 64-byte aligned packet and
         // mask, lanes with valid = 0 ignored.
@@ -363,24 +383,7 @@ impl EmbreeScene {
         valid.0[..n].fill(-1);
         let rh = &mut p.0.rayhit;
         let r = &mut rh.ray;
-        let lanes = [
-            &mut r.org_x,
-            &mut r.org_y,
-            &mut r.org_z,
-            &mut r.dir_x,
-            &mut r.dir_y,
-            &mut r.dir_z,
-        ];
-        for (lane, src) in lanes
-            .into_iter()
-            .zip([org[0], org[1], org[2], dir[0], dir[1], dir[2]])
-        {
-            if let Ok(full) = <&[f32; 16]>::try_from(src) {
-                *lane = *full;
-            } else {
-                lane[..n].copy_from_slice(&src[..n]);
-            }
-        }
+        load_lanes(r, org, dir);
         r.tfar = [f32::INFINITY; 16];
         rh.hit.geomID = [sys::RTC_INVALID_GEOMETRY_ID; 16];
         // SAFETY: the scene is committed; the ray-hit packet and the mask are 64-byte

@@ -26,50 +26,15 @@ pub const OFFSET_REL: f32 = 1e-5;
 /// [`Visibility::segment_ray`].
 pub type SegmentRay = (Vec3, Vec3, f32);
 
-/// Segment rays as structure of arrays: ray k starts at `(org[0][k], org[1][k],
-/// org[2][k])`, has direction `dir[.][k]` (far end minus origin, offsets applied as in
-/// [`Visibility::segment_ray`]) and runs over `t` in `[0, tfar]`. This is the layout of
-/// Embree's packets, so a batch goes to `rtcOccluded16` without being transposed.
-#[derive(Clone, Copy, Debug)]
-pub struct Segments<'a> {
-    /// Origins, by coordinate.
-    pub org: [&'a [f32]; 3],
-    /// Directions, by coordinate.
-    pub dir: [&'a [f32]; 3],
-    /// Common end of every ray, in units of its direction.
-    pub tfar: f32,
-}
-
-impl Segments<'_> {
-    /// Number of rays.
-    pub fn len(&self) -> usize {
-        self.org[0].len()
-    }
-
-    /// True when there is no ray.
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    /// Ray k as a [`SegmentRay`].
-    pub fn ray(&self, k: usize) -> SegmentRay {
-        let (o, d) = (self.org, self.dir);
-        (
-            Vec3::new(o[0][k], o[1][k], o[2][k]),
-            Vec3::new(d[0][k], d[1][k], d[2][k]),
-            self.tfar,
-        )
-    }
-}
-
-/// Rays for closest-hit queries as structure of arrays: ray k leaves `(org[0][k],
-/// org[1][k], org[2][k])` (already offset, see [`Visibility::first_hit_origin`]) in unit
-/// direction `dir[.][k]`. The layout of Embree's packets.
+/// Rays as structure of arrays, the layout of Embree's packets: ray k leaves `(org[0][k],
+/// org[1][k], org[2][k])` along `dir[.][k]`. For closest-hit queries the origins are
+/// already offset (see [`Visibility::first_hit_origin`]) and the directions have unit
+/// length; [`Segments`] use them with directions that reach the far end.
 #[derive(Clone, Copy, Debug)]
 pub struct Rays<'a> {
     /// Origins, by coordinate.
     pub org: [&'a [f32]; 3],
-    /// Unit directions, by coordinate.
+    /// Directions, by coordinate.
     pub dir: [&'a [f32]; 3],
 }
 
@@ -91,6 +56,36 @@ impl Rays<'_> {
             Vec3::new(o[0][k], o[1][k], o[2][k]),
             Vec3::new(d[0][k], d[1][k], d[2][k]),
         )
+    }
+}
+
+/// Segment rays as structure of arrays: [`Rays`] whose directions run from the origin to
+/// the far end (offsets applied as in [`Visibility::segment_ray`], so not unit), each over
+/// `t` in `[0, tfar]`. This is the layout of Embree's packets, so a batch goes to
+/// `rtcOccluded16` without being transposed.
+#[derive(Clone, Copy, Debug)]
+pub struct Segments<'a> {
+    /// Origins and directions.
+    pub rays: Rays<'a>,
+    /// Common end of every ray, in units of its direction.
+    pub tfar: f32,
+}
+
+impl Segments<'_> {
+    /// Number of rays.
+    pub fn len(&self) -> usize {
+        self.rays.len()
+    }
+
+    /// True when there is no ray.
+    pub fn is_empty(&self) -> bool {
+        self.rays.is_empty()
+    }
+
+    /// Ray k as a [`SegmentRay`].
+    pub fn ray(&self, k: usize) -> SegmentRay {
+        let (o, d) = self.rays.ray(k);
+        (o, d, self.tfar)
     }
 }
 
@@ -210,7 +205,7 @@ impl Visibility {
     #[inline]
     pub fn segments_visible_soa(&self, segs: &Segments, out: &mut [bool]) {
         let n = segs.len();
-        let (o, d) = (segs.org, segs.dir);
+        let (o, d) = (segs.rays.org, segs.rays.dir);
         for (lo, out) in (0..n).step_by(16).zip(out[..n].chunks_mut(16)) {
             let hi = (lo + 16).min(n);
             let org = [&o[0][lo..hi], &o[1][lo..hi], &o[2][lo..hi]];
