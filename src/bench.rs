@@ -185,50 +185,61 @@ pub fn raw_loop(vis: &Visibility, rec: &Recorded) -> u64 {
 pub fn raw_loop16(vis: &Visibility, rec: &Recorded) -> u64 {
     let e = vis.raw();
     match rec {
+        // The copies into packets at the sampling passes' width, as in the stage.
         Recorded::Segments(v) => v
             .par_chunks(4096)
             .map(|ch| {
-                let mut out = [false; 16];
-                let mut rays = [(Vec3::ZERO, Vec3::ZERO, 0.0, 0.0); 16];
-                let mut c = 0u64;
-                for p in ch.chunks(16) {
-                    for (k, r) in p.iter().enumerate() {
-                        rays[k] = (r.0, r.1, 0.0, r.2);
-                    }
-                    e.occluded16(&rays[..p.len()], &mut out);
-                    c += out[..p.len()].iter().filter(|&&o| o).count() as u64;
-                }
-                c
+                crate::simd::with_widest(
+                    #[inline(always)]
+                    || {
+                        let mut out = [false; 16];
+                        let mut rays = [(Vec3::ZERO, Vec3::ZERO, 0.0, 0.0); 16];
+                        let mut c = 0u64;
+                        for p in ch.chunks(16) {
+                            for (k, r) in p.iter().enumerate() {
+                                rays[k] = (r.0, r.1, 0.0, r.2);
+                            }
+                            e.occluded16(&rays[..p.len()], &mut out);
+                            c += out[..p.len()].iter().filter(|&&o| o).count() as u64;
+                        }
+                        c
+                    },
+                )
             })
             .sum(),
         Recorded::Rays(v) => v
             .par_chunks(4096)
             .map(|ch| {
-                let (mut out, mut against) = ([0u32; 16], [false; 16]);
-                let mut packet = visibility::HitPacket16::new();
-                let mut soa = [[0f32; 16]; 6];
-                let mut c = 0u64;
-                for p in ch.chunks(16) {
-                    for (k, r) in p.iter().enumerate() {
-                        for (a, v) in soa
-                            .iter_mut()
-                            .zip([r.0.x, r.0.y, r.0.z, r.1.x, r.1.y, r.1.z])
-                        {
-                            a[k] = v;
+                crate::simd::with_widest(
+                    #[inline(always)]
+                    || {
+                        let (mut out, mut against) = ([0u32; 16], [false; 16]);
+                        let mut packet = visibility::HitPacket16::new();
+                        let mut soa = [[0f32; 16]; 6];
+                        let mut c = 0u64;
+                        for p in ch.chunks(16) {
+                            for (k, r) in p.iter().enumerate() {
+                                for (a, v) in soa
+                                    .iter_mut()
+                                    .zip([r.0.x, r.0.y, r.0.z, r.1.x, r.1.y, r.1.z])
+                                {
+                                    a[k] = v;
+                                }
+                            }
+                            let n = p.len();
+                            let [ox, oy, oz, dx, dy, dz] = &soa;
+                            e.intersect16_soa(
+                                &mut packet,
+                                [&ox[..n], &oy[..n], &oz[..n]],
+                                [&dx[..n], &dy[..n], &dz[..n]],
+                                &mut out,
+                                &mut against,
+                            );
+                            c += out[..n].iter().map(|&h| h as u64).sum::<u64>();
                         }
-                    }
-                    let n = p.len();
-                    let [ox, oy, oz, dx, dy, dz] = &soa;
-                    e.intersect16_soa(
-                        &mut packet,
-                        [&ox[..n], &oy[..n], &oz[..n]],
-                        [&dx[..n], &dy[..n], &dz[..n]],
-                        &mut out,
-                        &mut against,
-                    );
-                    c += out[..n].iter().map(|&h| h as u64).sum::<u64>();
-                }
-                c
+                        c
+                    },
+                )
             })
             .sum(),
     }
@@ -251,14 +262,35 @@ pub struct RatioLine {
     pub raw16: f64,
     /// The stage with the queries replaced by a recorder, rays per second (one run).
     pub sampling: f64,
+    /// Per repeat, the stage rate over the best raw rate of the same repeat (the three
+    /// samples run back to back, so that load on the machine lasting longer than one
+    /// repeat weighs on both sides of the ratio), in time order.
+    pub ratios: Vec<f64>,
 }
 
 impl RatioLine {
     /// Stage rate over the best raw rate (single rays or packets, whichever Embree runs
-    /// faster on these rays): how close the stage comes to Embree's own limit.
+    /// faster on these rays): how close the stage comes to Embree's own limit. The median
+    /// over the repeats of the ratio within each repeat ([`RatioLine::ratios`]).
     pub fn ratio(&self) -> f64 {
-        self.stage / self.raw.max(self.raw16)
+        median(self.ratios.clone())
     }
+
+    /// Smallest and largest ratio within a repeat.
+    pub fn ratio_range(&self) -> (f64, f64) {
+        let lo = self.ratios.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = self
+            .ratios
+            .iter()
+            .copied()
+            .fold(f64::NEG_INFINITY, f64::max);
+        (lo, hi)
+    }
+}
+
+/// `slow[r] / fast[r]` for every repeat r.
+fn paired(slow: &[f64], fast: &[f64]) -> Vec<f64> {
+    slow.iter().zip(fast).map(|(s, f)| s / f).collect()
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -295,6 +327,7 @@ pub fn ratio(ctx: &Context, choice: &EstimatorChoice, repeats: usize) -> RatioLi
         per / t.elapsed().as_secs_f64()
     };
     let (mut stage, mut raw, mut raw16) = (Vec::new(), Vec::new(), Vec::new());
+    let mut ratios = Vec::new();
     for _ in 0..repeats.max(1) {
         stage.push(time(&|| {
             drop(formfactor::compute(ctx, est.as_ref(), &|_| {}))
@@ -305,6 +338,8 @@ pub fn ratio(ctx: &Context, choice: &EstimatorChoice, repeats: usize) -> RatioLi
         raw16.push(time(&|| {
             std::hint::black_box(raw_loop16(ctx.vis, &rec));
         }));
+        let best = raw.last().unwrap().max(*raw16.last().unwrap());
+        ratios.push(stage.last().unwrap() / best);
     }
     RatioLine {
         estimator: est.name(),
@@ -314,6 +349,7 @@ pub fn ratio(ctx: &Context, choice: &EstimatorChoice, repeats: usize) -> RatioLi
         raw: median(raw),
         raw16: median(raw16),
         sampling,
+        ratios,
     }
 }
 
@@ -327,7 +363,7 @@ pub fn format_ratios(lines: &[RatioLine], threads: usize) -> String {
     );
     let _ = writeln!(
         o,
-        "{:<40} {:>8} {:>11} {:>13} {:>13} {:>15} {:>10} {:>16}",
+        "{:<40} {:>8} {:>11} {:>13} {:>13} {:>15} {:>10} {:>13} {:>16}",
         "estimator",
         "patches",
         "rays",
@@ -335,12 +371,14 @@ pub fn format_ratios(lines: &[RatioLine], threads: usize) -> String {
         "raw1 Mray/s",
         "raw16 Mray/s",
         "stage/best",
+        "range",
         "no-query Mray/s"
     );
     for l in lines {
+        let (lo, hi) = l.ratio_range();
         let _ = writeln!(
             o,
-            "{:<40} {:>8} {:>11} {:>13.3} {:>13.3} {:>15.3} {:>10.3} {:>16.3}",
+            "{:<40} {:>8} {:>11} {:>13.3} {:>13.3} {:>15.3} {:>10.3} {:>13} {:>16.3}",
             l.estimator,
             l.patches,
             l.rays,
@@ -348,9 +386,15 @@ pub fn format_ratios(lines: &[RatioLine], threads: usize) -> String {
             l.raw / 1e6,
             l.raw16 / 1e6,
             l.ratio(),
+            format!("{lo:.3}-{hi:.3}"),
             l.sampling / 1e6
         );
     }
+    let _ = writeln!(
+        o,
+        "stage/best: median over the repeats of the stage rate over the faster raw loop, each \
+         repeat's three samples timed back to back; range: its smallest and largest value"
+    );
     o
 }
 
@@ -597,8 +641,8 @@ pub struct BenchConfig {
     pub threads: usize,
     /// Set flush-to-zero / denormals-are-zero on the workers.
     pub ftz: bool,
-    /// Let the sampling passes use AVX2 where the processor has it ([`crate::simd`]).
-    pub simd: bool,
+    /// Widest vector width the sampling passes may use ([`crate::simd`]).
+    pub simd: crate::simd::Width,
     /// Seed.
     pub seed: u64,
     /// Patch counts of the scaling run (empty: no scaling run).
@@ -641,7 +685,7 @@ pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
         cfg.threads
     };
     let pool = pool(threads, cfg.ftz)?;
-    crate::simd::set_enabled(cfg.simd);
+    crate::simd::set_limit(cfg.simd);
     if cfg.scaling.is_empty() {
         let scene = Scene::load(&cfg.scene)?;
         let patches = PatchSet::build(&scene, Resolution::Patches(cfg.patches))?;
@@ -663,11 +707,7 @@ pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
             cfg.scene,
             vis.raw().version(),
             if cfg.ftz { "on" } else { "off" },
-            if crate::simd::avx2_active() {
-                "AVX2"
-            } else {
-                "baseline"
-            }
+            crate::simd::active()
         ));
         print(&format_ratios(&lines, threads));
         let reports = pool.install(|| -> Result<Vec<StageReport>> {
@@ -780,6 +820,8 @@ fn scaling(
             rays = r;
         }
     }
+    // Speed-up within each repeat (1 thread, then all, back to back), then the median.
+    let speedups = paired(&t1, &tn);
     let (t1, tn) = (median(t1), median(tn));
     // The ceiling this machine allows: the raw packet loop over the same rays, 1 thread
     // against all, interleaved the same way.
@@ -794,17 +836,26 @@ fn scaling(
             }));
         }
     }
-    let raw_speedup = median(r1) / median(rn);
+    let raw_speedups = paired(&r1, &rn);
+    let range = |v: &[f64]| {
+        let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        format!("{lo:.2}-{hi:.2}")
+    };
+    let speedup = median(speedups.clone());
     print(&format!(
-        "cube 32x32 per face ({} patches, {} rays, {}): form factors {:.3} s with {threads} threads, {:.3} s with 1; speed-up {:.2}x (efficiency {:.0}%); the raw rtcIntersect16 loop over the same rays: speed-up {:.2}x",
+        "cube 32x32 per face ({} patches, {} rays, {}): form factors {:.3} s with {threads} threads, {:.3} s with 1 (medians); speed-up {:.2}x (median of {} repeats, range {}; efficiency {:.0}%); the raw rtcIntersect16 loop over the same rays: speed-up {:.2}x (range {})",
         patches.len(),
         rays,
         est.name(),
         tn,
         t1,
-        t1 / tn,
-        100.0 * t1 / tn / threads as f64,
-        raw_speedup
+        speedup,
+        speedups.len(),
+        range(&speedups),
+        100.0 * speedup / threads as f64,
+        median(raw_speedups.clone()),
+        range(&raw_speedups)
     ));
     Ok(())
 }

@@ -72,10 +72,11 @@ struct BenchArgs {
     /// Leave flush-to-zero / denormals-are-zero off on the workers.
     #[arg(long)]
     no_ftz: bool,
-    /// Run the sampling passes at the baseline vector width (no AVX2), to measure what the
-    /// wider passes gain (results are the same).
-    #[arg(long)]
-    no_simd: bool,
+    /// Widest vector width of the sampling passes: avx512, avx2 or baseline (the widest
+    /// the processor has, up to this one), to measure what each gains (results are the
+    /// same).
+    #[arg(long, default_value = "avx512", value_parser = parse_width)]
+    simd: radiosity::simd::Width,
     /// Scaling run instead: Cornell box and cube at these patch counts (comma-separated).
     #[arg(long, value_delimiter = ',', num_args = 0.., default_missing_value = "1024,4096,16384,65536,262144")]
     scaling: Option<Vec<usize>>,
@@ -373,6 +374,11 @@ fn parse_size(s: &str) -> Result<(u32, u32)> {
     Ok((w, h))
 }
 
+fn parse_width(s: &str) -> Result<radiosity::simd::Width> {
+    radiosity::simd::Width::parse(s)
+        .with_context(|| format!("--simd `{s}`: expected avx512, avx2 or baseline"))
+}
+
 fn parse_exposure(s: &str) -> Result<Exposure> {
     if s == "auto" {
         return Ok(Exposure::Auto);
@@ -551,7 +557,7 @@ pub fn run() -> Result<()> {
                 repeats: a.repeats,
                 threads: a.threads,
                 ftz: !a.no_ftz,
-                simd: !a.no_simd,
+                simd: a.simd,
                 seed: 1,
                 scaling: a.scaling.clone().unwrap_or_default(),
                 area_max: a.area_max,

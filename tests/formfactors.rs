@@ -209,7 +209,7 @@ fn results_do_not_depend_on_thread_count() {
     }
 }
 
-/// The sampling passes compiled for AVX2 and at the baseline width give the same bits
+/// The sampling passes compiled for AVX-512, for AVX2 and at the baseline width give the same bits
 /// (`radiosity::simd`: no fused multiply-adds, the same operations in the same order), for
 /// every estimator with such passes, on a scene with triangles and quads, and with an odd
 /// sample count (a partial last packet of segment rays).
@@ -239,13 +239,17 @@ fn vector_width_does_not_change_results() {
     ];
     for choice in &choices {
         let est = choice.build();
-        radiosity::simd::set_enabled(false);
+        use radiosity::simd::{set_limit, Width};
+        set_limit(Width::Baseline);
         let narrow = compute(&ctx, est.as_ref(), &|_| {});
-        radiosity::simd::set_enabled(true);
-        let wide = compute(&ctx, est.as_ref(), &|_| {});
         assert!(narrow.f.nnz() > 0);
-        assert_eq!(narrow.f, wide.f, "{}", narrow.estimator);
-        assert_eq!(narrow.se, wide.se, "{}", narrow.estimator);
-        assert_eq!(narrow.rays, wide.rays);
+        for w in [Width::Avx2, Width::Avx512] {
+            set_limit(w);
+            let wide = compute(&ctx, est.as_ref(), &|_| {});
+            let name = format!("{} at {w}", narrow.estimator);
+            assert_eq!(narrow.f, wide.f, "{name}");
+            assert_eq!(narrow.se, wide.se, "{name}");
+            assert_eq!(narrow.rays, wide.rays);
+        }
     }
 }

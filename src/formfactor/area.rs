@@ -156,7 +156,7 @@ impl AreaMc {
         let m = self.pairs_per_replicate();
         SCRATCH.with(|s| {
             let s = &mut s.borrow_mut();
-            crate::simd::with_avx2(
+            crate::simd::with_widest(
                 #[inline(always)]
                 || self.pairs_of(ctx, a, (&pa[..ka], &on_a), m, row, visible, s),
             )

@@ -16,7 +16,7 @@
 //!
 //! Sampling runs in `f32` over chunks of rays (structure of arrays, 24 random bits per
 //! coordinate from a counter-based [`Wy`] stream, a polynomial sine and cosine in the
-//! concentric map, compiled for AVX2 where available: [`crate::simd`]). The rays of a
+//! concentric map, compiled for AVX2 or AVX-512 where available: [`crate::simd`]). The rays of a
 //! replicate go out in Z-order of their direction cells, so that each packet of 16 is
 //! coherent, and are traced 16 at a time (`rtcIntersect16`); the side of a patch a ray
 //! meets comes from the hit triangle's normal. Hits are tallied per (patch, replicate) in
@@ -211,7 +211,7 @@ impl Hemisphere {
     ) {
         SCRATCH.with(|s| {
             let s = &mut s.borrow_mut();
-            crate::simd::with_avx2(
+            crate::simd::with_widest(
                 #[inline(always)]
                 || self.row_in(ctx, i, row, first_hits, s),
             )

@@ -303,7 +303,7 @@ impl EmbreeScene {
     /// starts at `(org[0][k], org[1][k], org[2][k])`, has direction `dir[.][k]` and runs
     /// over `[0, tfar]`. The slices are copied into the packet whole (no transposition);
     /// `out[k]` is set to true when ray k is blocked.
-    #[inline]
+    #[inline(always)]
     pub fn occluded16_soa(&self, org: [&[f32]; 3], dir: [&[f32]; 3], tfar: f32, out: &mut [bool]) {
         let n = org[0].len();
         debug_assert!(n <= 16 && out.len() >= n);
@@ -322,13 +322,13 @@ impl EmbreeScene {
 
     /// Occlusion for up to 16 rays at once (`rtcOccluded16`). Each ray is
     /// `(origin, direction, tnear, tfar)`; `out[k]` is set to true when ray k is blocked.
-    #[inline]
+    #[inline(always)]
     pub fn occluded16(&self, rays: &[(Vec3, Vec3, f32, f32)], out: &mut [bool]) {
         self.occluded16_with(rays.len(), |k| rays[k], out);
     }
 
     /// One `rtcOccluded16` over `n <= 16` rays given by `ray(k)`.
-    #[inline]
+    #[inline(always)]
     fn occluded16_with(
         &self,
         n: usize,
@@ -368,7 +368,7 @@ impl EmbreeScene {
     /// triangle against its winding normal `(v1 - v0) x (v2 - v0)` (from the side the
     /// normal points to). Full packets are copied in whole; only the fields a query
     /// changes are reset.
-    #[inline]
+    #[inline(always)]
     pub fn intersect16_soa(
         &self,
         p: &mut HitPacket16,

@@ -206,15 +206,21 @@ impl Visibility {
     pub fn segments_visible_soa(&self, segs: &Segments, out: &mut [bool]) {
         let n = segs.len();
         let (o, d) = (segs.rays.org, segs.rays.dir);
-        for (lo, out) in (0..n).step_by(16).zip(out[..n].chunks_mut(16)) {
-            let hi = (lo + 16).min(n);
-            let org = [&o[0][lo..hi], &o[1][lo..hi], &o[2][lo..hi]];
-            let dir = [&d[0][lo..hi], &d[1][lo..hi], &d[2][lo..hi]];
-            self.scene.occluded16_soa(org, dir, segs.tfar, out);
-            for v in out.iter_mut() {
-                *v = !*v;
-            }
-        }
+        // The packet copies and the answers' pass, at the sampling passes' width.
+        crate::simd::with_widest(
+            #[inline(always)]
+            || {
+                for (lo, out) in (0..n).step_by(16).zip(out[..n].chunks_mut(16)) {
+                    let hi = (lo + 16).min(n);
+                    let org = [&o[0][lo..hi], &o[1][lo..hi], &o[2][lo..hi]];
+                    let dir = [&d[0][lo..hi], &d[1][lo..hi], &d[2][lo..hi]];
+                    self.scene.occluded16_soa(org, dir, segs.tfar, out);
+                    for v in out.iter_mut() {
+                        *v = !*v;
+                    }
+                }
+            },
+        )
     }
 
     /// The ray [`Visibility::first_hit`] casts from `x` (normal `n_x`) in unit direction
@@ -262,23 +268,29 @@ impl Visibility {
         let (o, d) = (rays.org, rays.dir);
         let mut against = [false; 16];
         let mut packet = HitPacket16::new();
-        for (lo, out) in (0..n).step_by(16).zip(out[..n].chunks_mut(16)) {
-            let hi = (lo + 16).min(n);
-            let org = [&o[0][lo..hi], &o[1][lo..hi], &o[2][lo..hi]];
-            let dir = [&d[0][lo..hi], &d[1][lo..hi], &d[2][lo..hi]];
-            self.scene
-                .intersect16_soa(&mut packet, org, dir, out, &mut against);
-            for (v, &a) in out.iter_mut().zip(&against) {
-                if *v != u32::MAX {
-                    let t = self.tri_front[*v as usize];
-                    *v = if a == (t & ALONG != 0) {
-                        t & !ALONG
-                    } else {
-                        NO_HIT
-                    };
+        // The packet copies and the answers' pass, at the sampling passes' width.
+        crate::simd::with_widest(
+            #[inline(always)]
+            || {
+                for (lo, out) in (0..n).step_by(16).zip(out[..n].chunks_mut(16)) {
+                    let hi = (lo + 16).min(n);
+                    let org = [&o[0][lo..hi], &o[1][lo..hi], &o[2][lo..hi]];
+                    let dir = [&d[0][lo..hi], &d[1][lo..hi], &d[2][lo..hi]];
+                    self.scene
+                        .intersect16_soa(&mut packet, org, dir, out, &mut against);
+                    for (v, &a) in out.iter_mut().zip(&against) {
+                        if *v != u32::MAX {
+                            let t = self.tri_front[*v as usize];
+                            *v = if a == (t & ALONG != 0) {
+                                t & !ALONG
+                            } else {
+                                NO_HIT
+                            };
+                        }
+                    }
                 }
-            }
-        }
+            },
+        )
     }
 
     /// First patch hit by the ray leaving `x` (normal `n_x`) in unit direction `dir`.
