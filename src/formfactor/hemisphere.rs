@@ -19,10 +19,10 @@
 //! concentric map, compiled for AVX2 or AVX-512 where available: [`crate::simd`]). The rays of a
 //! replicate go out in Z-order of their direction cells, so that each packet of 16 is
 //! coherent, and are traced 16 at a time (`rtcIntersect16`); the side of a patch a ray
-//! meets comes from the hit triangle's normal. Hits are tallied per (patch, replicate) in
-//! per-thread arrays kept zero between rows, and the patches hit are found by a scan of the
-//! tallies (small scenes) or listed as they come (large ones), so a row costs nothing per
-//! patch it does not hit.
+//! meets comes from the hit triangle's normal. Hits are tallied per (patch, replicate) in a
+//! per-thread array kept zero between rows (a patch's replicates side by side), and the
+//! patches hit are found by a scan of the tallies (small scenes) or marked in a bit set as
+//! they come (large ones, whose rows then cost one bit per patch they do not hit).
 
 use glam::Vec3;
 
@@ -178,17 +178,13 @@ struct Scratch {
     org: [Vec<f32>; 3],
     dir: [Vec<f32>; 3],
     hits: Vec<u32>,
-    /// Hit tallies `counts[r * (n + 1) + j]` for patches `j < n` and a spare slot `j = n`
-    /// that takes misses; all zero between rows. `seen[j] == row` (the running row number
-    /// of this thread) when `j` was hit in this row; `touched[..t_len]` lists those `j`
-    /// in first-hit order.
+    /// Hit tallies `counts[j * R + r]` of patch j in replicate r for patches `j < n` and a
+    /// spare slot `j = n` that takes misses; all zero between rows.
     counts: Vec<u32>,
-    seen: Vec<u32>,
-    /// Per patch, the OR of its tallies over the replicates (the dense scan).
-    any: Vec<u32>,
-    row: u32,
-    touched: Vec<u32>,
-    t_len: usize,
+    /// Bit j set when slot j was hit in this row; all zero between rows.
+    bits: Vec<u64>,
+    /// The patches hit in a row, in order.
+    hit: Vec<u32>,
 }
 
 thread_local! {
@@ -243,16 +239,10 @@ impl Hemisphere {
         let centroid = p.centroid[i];
         let on_i = p.sampler(i);
         let inv = 1.0 / st as f32;
-        // A new row stamp: every tally of an earlier row is stale.
-        s.row = s.row.wrapping_add(1);
-        if s.row == 0 {
-            s.seen.iter_mut().for_each(|v| *v = 0);
-            s.row = 1;
-        }
-        s.t_len = 0;
         let n = p.len();
-        // Tallies found by a scan after the row when that reads at most four words per ray
-        // cast (a word scanned costs a few hundredths of a ray traced).
+        // Small scenes find the patches hit by a scan of the tallies after the row, at
+        // most R words per ray cast (a word scanned costs a few hundredths of a ray
+        // traced); large ones mark them in a bit set as they come.
         let dense = n <= 4 * m;
         // One replicate at a time (its buffers stay in the L1 cache next to Embree's).
         for r in 0..reps {
@@ -318,98 +308,69 @@ impl Hemisphere {
                 first_hits(&rays, &mut s.hits[..len]);
                 // Count front-side hits per (patch, replicate), without branches: a miss
                 // (or a back side met first) and a hit on patch i itself count in the
-                // spare slot n. In a scene of many patches, those hit in this row are
-                // listed once each as they come (`seen[j] == row`); in a small one, a scan
-                // of the tallies finds them after the row for less.
-                let counts = &mut s.counts[r * (n + 1)..(r + 1) * (n + 1)];
+                // spare slot n.
+                let (counts, bits) = (&mut s.counts[..], &mut s.bits[..]);
                 if dense {
                     for &j in &s.hits[..len] {
                         let jj = (j as usize).min(n);
                         let slot = if jj != i { jj } else { n };
-                        counts[slot] += 1;
+                        counts[slot * reps + r] += 1;
                     }
                 } else {
-                    let (seen, touched) = (&mut s.seen[..], &mut s.touched);
-                    let row_stamp = s.row;
-                    let mut t_len = s.t_len;
                     for &j in &s.hits[..len] {
                         let jj = (j as usize).min(n);
                         let slot = if jj != i { jj } else { n };
-                        counts[slot] += 1;
-                        let fresh = seen[slot] != row_stamp;
-                        seen[slot] = row_stamp;
-                        touched[t_len] = slot as u32;
-                        t_len += fresh as usize;
+                        counts[slot * reps + r] += 1;
+                        bits[slot >> 6] |= 1 << (slot & 63);
                     }
-                    s.t_len = t_len;
                 }
             }
         }
         row.rays += (m * reps) as u64;
-        // Entries in column order (the matrix assembly then finds each row sorted), mean
-        // and variance of the replicate means from exact integer sums: with S = Σ c_r and
-        // Q = Σ c_r², Var = (R Q - S²) / (R (R - 1) m²).
-        let t_len = s.t_len;
-        let order = if dense {
-            // The patches with a nonzero tally, in order (written over `touched`).
-            let any = &mut s.any[..n];
-            any.copy_from_slice(&s.counts[..n]);
-            for t in s.counts.chunks_exact(n + 1).take(reps).skip(1) {
-                for (a, &v) in any.iter_mut().zip(&t[..n]) {
-                    *a |= v;
-                }
-            }
-            let mut c = 0;
-            for (j, &a) in any.iter().enumerate() {
-                s.touched[c] = j as u32;
-                c += (a != 0) as usize;
-            }
-            &s.touched[..c]
-        } else if n <= 32 * t_len {
-            // Many patches were hit: a scan of the stamps (about half a nanosecond each)
-            // lists them in order for less than a sort (t log2 t compares of a few
-            // nanoseconds; written over `touched`, which the scan does not read).
-            let mut c = 0;
-            for j in 0..n {
-                s.touched[c] = j as u32;
-                c += (s.seen[j] == s.row) as usize;
-            }
-            &s.touched[..c]
-        } else {
-            let t = &mut s.touched[..t_len];
-            t.sort_unstable();
-            // The spare slot n sorts last.
-            &t[..t_len - (t.last() == Some(&(n as u32))) as usize]
-        };
-        // The squared standard error of the mean is Var / R.
+        // Entries in column order (the bit set's order: the matrix assembly then finds each
+        // row sorted), mean and variance of the replicate means from exact integer sums:
+        // with S = Σ c_r and Q = Σ c_r², Var = (R Q - S²) / (R (R - 1) m²). The squared
+        // standard error of the mean is Var / R.
         let rf = reps as f64;
         let (inv_mr, inv_se2) = (
             1.0 / (m as f64 * rf),
             1.0 / (rf * rf * (rf - 1.0) * (m as f64).powi(2)),
         );
-        let start = row.entries.len();
-        row.entries.reserve(order.len());
-        for &j in order {
-            let (mut sum, mut sq) = (0i64, 0i64);
-            for t in s.counts.chunks_exact_mut(n + 1).take(reps) {
-                let c = t[j as usize] as i64;
-                (sum, sq) = (sum + c, sq + c * c);
-                // Back to zero for the next row.
-                t[j as usize] = 0;
+        // The patches hit, in order (the spare slot n is none): by a scan of the tallies,
+        // or from the bit set.
+        let mut hit = 0;
+        if dense {
+            for (j, t) in s.counts[..n * reps].chunks_exact(reps).enumerate() {
+                s.hit[hit] = j as u32;
+                hit += (t.iter().fold(0, |a, &c| a | c) != 0) as usize;
             }
-            row.entries.push(Entry {
-                j,
+        } else {
+            s.bits[n >> 6] &= !(1 << (n & 63));
+            for (w, word) in s.bits.iter_mut().enumerate() {
+                let mut bits = std::mem::take(word);
+                while bits != 0 {
+                    s.hit[hit] = (w * 64) as u32 + bits.trailing_zeros();
+                    hit += 1;
+                    bits &= bits - 1;
+                }
+            }
+        }
+        let counts = &mut s.counts;
+        row.entries.extend(s.hit[..hit].iter().map(|&j| {
+            let (mut sum, mut sq) = (0i64, 0i64);
+            let j = j as usize;
+            // Read, then back to zero for the next row.
+            for c in &mut counts[j * reps..(j + 1) * reps] {
+                let v = std::mem::take(c) as i64;
+                (sum, sq) = (sum + v, sq + v * v);
+            }
+            Entry {
+                j: j as u32,
                 f: sum as f64 * inv_mr,
-                se: (reps as i64 * sq - sum * sum) as f64 * inv_se2,
-            });
-        }
-        // Square roots in a pass of their own (independent, so they overlap).
-        for e in &mut row.entries[start..] {
-            e.se = e.se.sqrt();
-        }
-        for t in s.counts.chunks_exact_mut(n + 1).take(reps) {
-            t[n] = 0;
-        }
+                se: ((reps as i64 * sq - sum * sum) as f64 * inv_se2).sqrt(),
+            }
+        }));
+        s.counts[n * reps..(n + 1) * reps].fill(0);
     }
 }
 
@@ -447,11 +408,9 @@ impl Scratch {
     /// Sizes the buffers for `len` rays (one replicate), `st x st` strata per replicate,
     /// `reps` replicates and a scene of `n` patches.
     fn prepare(&mut self, st: usize, len: usize, n: usize, reps: usize) {
-        if self.seen.len() < n + 1 {
-            self.seen.resize(n + 1, 0);
-            self.touched.resize(n + 1, 0);
-            self.any.resize(n + 1, 0);
-        }
+        // Sized exactly: the end of the row walks the whole bit set.
+        self.bits.resize((n + 1).div_ceil(64), 0);
+        self.hit.resize(n + 1, 0);
         if self.counts.len() < (n + 1) * reps {
             self.counts.resize((n + 1) * reps, 0);
         }
