@@ -130,11 +130,45 @@ impl CsrBuilder {
         }
     }
 
-    /// Room for `additional` more entries.
+    /// Room for `additional` more entries (amortized growth).
     pub fn reserve(&mut self, additional: usize) {
         self.indices.reserve(additional);
         self.data.reserve(additional);
         self.se.reserve(additional);
+    }
+
+    /// Room for exactly `additional` more entries.
+    pub fn reserve_exact(&mut self, additional: usize) {
+        self.indices.reserve_exact(additional);
+        self.data.reserve_exact(additional);
+        self.se.reserve_exact(additional);
+    }
+
+    /// [`CsrBuilder::reserve_exact`], or an error (and no change in capacity that matters)
+    /// when the allocator refuses.
+    pub fn try_reserve_exact(
+        &mut self,
+        additional: usize,
+    ) -> Result<(), std::collections::TryReserveError> {
+        self.indices.try_reserve_exact(additional)?;
+        self.data.try_reserve_exact(additional)?;
+        self.se.try_reserve_exact(additional)
+    }
+
+    /// Entries pushed so far.
+    pub fn len(&self) -> usize {
+        self.indices.len()
+    }
+
+    /// True before the first entry.
+    pub fn is_empty(&self) -> bool {
+        self.indices.is_empty()
+    }
+
+    /// Entries that fit before the arrays must grow.
+    pub fn spare(&self) -> usize {
+        let cap = self.indices.capacity().min(self.data.capacity());
+        cap.min(self.se.capacity()) - self.indices.len()
     }
 
     /// Appends the next row (entries in any order; duplicates are merged).

@@ -98,6 +98,12 @@ impl Estimator for Hemisphere {
         )
     }
 
+    fn row_bound(&self, n: usize) -> usize {
+        // One entry per ray at most.
+        let st = self.strata.max(1);
+        n.min(st * st * self.replicates.max(2))
+    }
+
     fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
         let vis = ctx.vis;
         self.row_with(ctx, i, row, &mut |rays, out| {

@@ -71,6 +71,12 @@ pub trait Estimator: Sync {
     fn upper_only(&self) -> bool {
         false
     }
+    /// The most entries a row can hold in a scene of `n` patches (`n` unless the estimator
+    /// knows better: hemisphere shooting stores at most one entry per ray), used to
+    /// reserve the matrix arrays once.
+    fn row_bound(&self, n: usize) -> usize {
+        n
+    }
     /// Computes row `i` (only `j > i` when [`Estimator::upper_only`]) into `row`, which
     /// arrives cleared.
     fn row(&self, ctx: &Context, i: usize, row: &mut Row);
@@ -126,6 +132,31 @@ fn rows_par(
     (rows.into_iter().map(|r| r.0).collect(), rays)
 }
 
+/// Makes room in `csr` for the block `rows` (rows `lo..` of `n`), reserving for the rest
+/// of the matrix at once so that the arrays seldom grow: a growth copies every entry so
+/// far and holds both copies at the peak (at 256k patches that was 18 s and a third more
+/// memory). After the first block: the estimator's bound on the whole matrix, `n * bound`
+/// entries, when that is within 4 times the first block's density (address space that is
+/// reserved but never written costs no memory) and the system grants it; else that
+/// density plus 10%. A later block that does not fit reserves for the remaining rows at
+/// the density so far plus 25%.
+fn reserve(csr: &mut CsrBuilder, rows: &[Vec<Entry>], lo: usize, n: usize, bound: usize) {
+    let nnz: usize = rows.iter().map(Vec::len).sum();
+    let done = lo + rows.len();
+    if lo == 0 {
+        let expected = nnz as f64 * n as f64 / rows.len().max(1) as f64;
+        let most = n as f64 * bound as f64;
+        if most <= 4.0 * expected && csr.try_reserve_exact(most as usize).is_ok() {
+            return;
+        }
+        csr.reserve_exact(((expected * 1.1) as usize).max(nnz));
+    } else if csr.spare() < nnz {
+        let so_far = csr.len() + nnz;
+        let rest = (so_far as f64 / done as f64 * (n - done) as f64 * 1.25) as usize;
+        csr.reserve_exact(nnz + rest);
+    }
+}
+
 /// [`compute`], also reporting how long rows and assembly took.
 pub fn compute_timed(
     ctx: &Context,
@@ -162,12 +193,7 @@ pub fn compute_timed(
             rays += r;
             split.rows += t.elapsed().as_secs_f64();
             let t = Instant::now();
-            if lo == 0 && rows.len() < n {
-                // Room for the whole matrix at the first block's density (plus 10%), so
-                // that the arrays do not grow by repeated doubling and copying.
-                let nnz: usize = rows.iter().map(Vec::len).sum();
-                csr.reserve(nnz * n / rows.len() * 11 / 10);
-            }
+            reserve(&mut csr, &rows, lo, n, est.row_bound(n).min(n));
             csr.push_rows(&rows);
             drop(rows);
             split.assembly += t.elapsed().as_secs_f64();
@@ -181,4 +207,77 @@ pub fn compute_timed(
         ctx.seed,
     );
     (ff, split)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::{PatchSet, Resolution};
+    use crate::scene::Scene;
+
+    /// Rows of `short` entries in the first block and `long` ones after it.
+    struct Uneven {
+        short: usize,
+        long: usize,
+    }
+
+    impl Estimator for Uneven {
+        fn name(&self) -> String {
+            "uneven".into()
+        }
+        fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
+            let k = if i < BLOCK_ROWS {
+                self.short
+            } else {
+                self.long
+            };
+            let n = ctx.patches.len();
+            for c in 0..k {
+                let j = (i * 7 + c * 13) % n;
+                row.entries.push(Entry {
+                    j: j as u32,
+                    f: (i + 1) as f64 / (j + 2) as f64,
+                    se: c as f64,
+                });
+            }
+        }
+    }
+
+    /// Matrices of several blocks come out the same as rows assembled one by one, whether
+    /// the first block's density reserves for the whole matrix (hemisphere shooting, whose
+    /// rows are bounded) or the arrays must grow after it (a first block far sparser than
+    /// the rest): the blocked, reserved assembly changes nothing but the memory it takes.
+    #[test]
+    fn blocked_assembly_matches_row_by_row() {
+        let scene = Scene::load("cube").unwrap();
+        let patches = PatchSet::build(&scene, Resolution::MaxEdge(1.0 / 20.0)).unwrap();
+        let n = patches.len();
+        assert!(n > 2 * BLOCK_ROWS, "{n}");
+        let vis = Visibility::new(&patches).unwrap();
+        let ctx = Context {
+            patches: &patches,
+            vis: &vis,
+            seed: 3,
+        };
+        let hemi = Hemisphere {
+            strata: 4,
+            replicates: 2,
+        };
+        let uneven = Uneven { short: 2, long: 40 };
+        for est in [&hemi as &dyn Estimator, &uneven] {
+            let ff = compute(&ctx, est, &|_| {});
+            let rows: Vec<Vec<Entry>> = (0..n)
+                .map(|i| {
+                    let mut row = Row::default();
+                    est.row(&ctx, i, &mut row);
+                    row.entries
+                })
+                .collect();
+            let reference =
+                FormFactors::from_rows(rows, patches.area.clone(), ff.rays, 0.0, est.name(), 3);
+            assert_eq!(ff.f, reference.f, "{}", est.name());
+            assert_eq!(ff.se, reference.se, "{}", est.name());
+            assert!(ff.f.nnz() > n);
+        }
+    }
 }
