@@ -38,7 +38,21 @@ pub struct Rays<'a> {
     pub dir: [&'a [f32]; 3],
 }
 
-impl Rays<'_> {
+impl<'a> Rays<'a> {
+    /// The rays in runs of 16 (the last one shorter), as the slices an Embree packet copies:
+    /// `(origins, directions)` by coordinate.
+    #[inline(always)]
+    pub fn packets16(&self) -> impl Iterator<Item = ([&'a [f32]; 3], [&'a [f32]; 3])> + '_ {
+        let (o, d) = (self.org, self.dir);
+        (0..self.len()).step_by(16).map(move |lo| {
+            let hi = (lo + 16).min(self.len());
+            (
+                [&o[0][lo..hi], &o[1][lo..hi], &o[2][lo..hi]],
+                [&d[0][lo..hi], &d[1][lo..hi], &d[2][lo..hi]],
+            )
+        })
+    }
+
     /// Number of rays.
     pub fn len(&self) -> usize {
         self.org[0].len()
@@ -205,15 +219,11 @@ impl Visibility {
     #[inline]
     pub fn segments_visible_soa(&self, segs: &Segments, out: &mut [bool]) {
         let n = segs.len();
-        let (o, d) = (segs.rays.org, segs.rays.dir);
         // The packet copies and the answers' pass, at the sampling passes' width.
         crate::simd::with_widest(
             #[inline(always)]
             || {
-                for (lo, out) in (0..n).step_by(16).zip(out[..n].chunks_mut(16)) {
-                    let hi = (lo + 16).min(n);
-                    let org = [&o[0][lo..hi], &o[1][lo..hi], &o[2][lo..hi]];
-                    let dir = [&d[0][lo..hi], &d[1][lo..hi], &d[2][lo..hi]];
+                for ((org, dir), out) in segs.rays.packets16().zip(out[..n].chunks_mut(16)) {
                     self.scene.occluded16_soa(org, dir, segs.tfar, out);
                     for v in out.iter_mut() {
                         *v = !*v;
@@ -265,17 +275,13 @@ impl Visibility {
     #[inline]
     pub fn first_front_hits_soa(&self, rays: &Rays, out: &mut [u32]) {
         let n = rays.len();
-        let (o, d) = (rays.org, rays.dir);
         let mut against = [false; 16];
         let mut packet = HitPacket16::new();
         // The packet copies and the answers' pass, at the sampling passes' width.
         crate::simd::with_widest(
             #[inline(always)]
             || {
-                for (lo, out) in (0..n).step_by(16).zip(out[..n].chunks_mut(16)) {
-                    let hi = (lo + 16).min(n);
-                    let org = [&o[0][lo..hi], &o[1][lo..hi], &o[2][lo..hi]];
-                    let dir = [&d[0][lo..hi], &d[1][lo..hi], &d[2][lo..hi]];
+                for ((org, dir), out) in rays.packets16().zip(out[..n].chunks_mut(16)) {
                     self.scene
                         .intersect16_soa(&mut packet, org, dir, out, &mut against);
                     for (v, &a) in out.iter_mut().zip(&against) {
