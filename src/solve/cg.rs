@@ -36,7 +36,7 @@
 //! passes over the matrix (one over `S`, one over `F`). All three channels run in lockstep,
 //! each with its own CG scalars; a channel stops updating once it is within tolerance.
 //! If `p^T M_s p <= 0` the symmetric form is not positive definite (rows of `F` summing above
-//! `1 / rho`): the run stops with [`Error::Singular`](crate::Error::Singular).
+//! `1 / rho`): the run stops with [`Error::Singular`].
 
 use std::time::Instant;
 

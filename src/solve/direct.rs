@@ -14,17 +14,17 @@
 //! ## Limits and failures
 //! - The factor is dense: `8 n²` bytes for `n` patches. Above [`DIRECT_MAX_PATCHES`] patches
 //!   (4096, i.e. 128 MiB per factor, and about `2/3 n³ = 4.6e10` flops per channel) the solve
-//!   is refused with [`Error::Config`](crate::Error::Config), naming the memory it would need.
+//!   is refused with [`Error::Config`], naming the memory it would need.
 //! - A pivot below `n * eps` times the largest one means the matrix is singular to working
 //!   precision (a closed scene with `rho -> 1`): refused with
-//!   [`Error::Singular`](crate::Error::Singular).
+//!   [`Error::Singular`].
 //! - With `rho >= 0`, `F >= 0` and spectral radius of `diag(rho) F` below 1, the solution is
 //!   the Neumann series `sum_k (diag(rho) F)^k E >= 0`. A negative radiosity (beyond rounding)
 //!   with non-negative emission therefore proves the spectral radius is at least 1 (rows of
-//!   `F` summing far above 1): refused with [`Error::Singular`](crate::Error::Singular)
+//!   `F` summing far above 1): refused with [`Error::Singular`]
 //!   rather than returned. Iterative solvers diverge on such systems; the direct solve would
 //!   silently return a wrong answer.
-//! - Still above tolerance after refinement: [`Error::NotConverged`](crate::Error::NotConverged)
+//! - Still above tolerance after refinement: [`Error::NotConverged`]
 //!   (or the partial answer with `keep_partial`), with a hint about conditioning.
 
 use std::time::Instant;

@@ -6,7 +6,7 @@
 //! rectangles are offset (Siegel and Howell, "configuration-factor algebra"; Howell's
 //! catalogue C-12 and C-16 are built the same way):
 //!
-//! - **Along a common line** ([`along_line`]): two rectangles of fixed widths in two fixed
+//! - **Along a common line** (`along_line`): two rectangles of fixed widths in two fixed
 //!   planes, spanning `[a1, a2]` and `[b1, b2]` along a line parallel to both. With
 //!   `k(za - zb)` the kernel integrated over the widths, `Q = A_1 F_12 = ∫∫ k(za - zb)`, and
 //!   with `Φ'' = k`, `Φ(0) = Φ'(0) = 0`,
