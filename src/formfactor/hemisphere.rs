@@ -247,7 +247,7 @@ impl Hemisphere {
         let inv = 1.0 / st as f32;
         let n = p.len();
         // Small scenes find the patches hit by a scan of the tallies after the row, at
-        // most R words per ray cast (a word scanned costs a few hundredths of a ray
+        // most four words per ray cast (a word scanned costs a few hundredths of a ray
         // traced); large ones mark them in a bit set as they come.
         let dense = n <= 4 * m;
         // One replicate at a time (its buffers stay in the L1 cache next to Embree's).

@@ -135,7 +135,8 @@ fn rows_par(
 /// Makes room in `csr` for the block `rows` (rows `lo..` of `n`), reserving for the rest
 /// of the matrix at once so that the arrays seldom grow: a growth copies every entry so
 /// far and holds both copies at the peak (at 256k patches that was 18 s and a third more
-/// memory). After the first block: the estimator's bound on the whole matrix, `n * bound`
+/// memory). A matrix of one block takes exactly its entries. After the first block of
+/// several: the estimator's bound on the whole matrix, `n * bound`
 /// entries, when that is within 4 times the first block's density (address space that is
 /// reserved but never written costs no memory) and the system grants it; else that
 /// density plus 10%. A later block that does not fit reserves for the remaining rows at
@@ -143,7 +144,9 @@ fn rows_par(
 fn reserve(csr: &mut CsrBuilder, rows: &[Vec<Entry>], lo: usize, n: usize, bound: usize) {
     let nnz: usize = rows.iter().map(Vec::len).sum();
     let done = lo + rows.len();
-    if lo == 0 {
+    if lo == 0 && done == n {
+        csr.reserve_exact(nnz);
+    } else if lo == 0 {
         let expected = nnz as f64 * n as f64 / rows.len().max(1) as f64;
         let most = n as f64 * bound as f64;
         if most <= 4.0 * expected && csr.try_reserve_exact(most as usize).is_ok() {
