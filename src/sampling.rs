@@ -4,8 +4,11 @@
 //! pbrt-v4 rule: work item i has its own stream), so results depend only on the seed and
 //! patch ids, never on the thread count or the order rows are computed in.
 //!
-//! The generator is PCG32 (O'Neill 2014, XSH-RR output, 64-bit state), seeded through
-//! SplitMix64 (Steele, Lea and Flood 2014) of the key.
+//! The generators: PCG32 (O'Neill 2014, XSH-RR output, 64-bit state), seeded through
+//! SplitMix64 (Steele, Lea and Flood 2014) of the key; wyrand ([`Wy`], a Weyl sequence and
+//! a 128-bit product); and SplitMix64 itself as a counter-based stream ([`SplitMix`]),
+//! whose words are independent of each other and so come out of vector passes. Random
+//! pairings of strata use Kensler's hashed permutation ([`hashed_permutation`]).
 
 /// SplitMix64 finaliser: a bijective 64-bit mix.
 #[inline]
@@ -142,7 +145,8 @@ pub fn unit_f32(x: u32) -> f32 {
 /// Unit-square coordinates from random words, four per pair of words, into `u`: coordinate
 /// c of sample k is `(cells[c][k] + unit_f32(h)) * inv`, `h` the c-th 32-bit half of
 /// `words[2k]`, `words[2k + 1]` (low half first), or `unit_f32(h)` alone when there are no
-/// cells. A loop the compiler vectorizes; the words come first from [`Wy::fill`].
+/// cells. A loop the compiler vectorizes; the words come first from [`Wy::fill`] or
+/// [`SplitMix::fill`].
 #[inline(always)]
 pub fn jitter4(words: &[u64], cells: Option<[&[f32]; 4]>, inv: f32, u: &mut [Vec<f32>; 4]) {
     let len = words.len() / 2;
@@ -191,11 +195,107 @@ pub fn jittered(rng: &mut Pcg32, s: usize, out: &mut Vec<(f64, f64)>) {
     }
 }
 
-/// Shuffles a slice in place (Fisher-Yates).
-pub fn shuffle<T>(rng: &mut Pcg32, v: &mut [T]) {
-    for k in (1..v.len()).rev() {
-        let j = rng.below(k as u32 + 1) as usize;
-        v.swap(k, j);
+/// A counter-based SplitMix64 stream (Steele, Lea and Flood 2014): word k of the stream
+/// keyed `s` is `mix64(s + k γ)`, every word computed on its own, so that a run of them is
+/// one vector pass ([`SplitMix::fill`]); the multiplies are 64-bit low halves, which
+/// AVX-512 has as one instruction.
+#[derive(Clone, Debug)]
+pub struct SplitMix {
+    state: u64,
+}
+
+/// The Weyl increment of [`mix64`] (the golden ratio in 64 bits).
+const SM_GAMMA: u64 = 0x9E37_79B9_7F4A_7C15;
+
+impl SplitMix {
+    /// A stream keyed on a seed and up to three integers (distinct from the [`Pcg32`] and
+    /// [`Wy`] streams of the same key).
+    pub fn keyed(seed: u64, a: u64, b: u64, c: u64) -> SplitMix {
+        SplitMix {
+            state: mix64(seed ^ mix64(a ^ mix64(b ^ mix64(c ^ 0x5350_4C49_544D_4958)))),
+        }
+    }
+
+    /// Next 64 random bits.
+    #[inline(always)]
+    pub fn next_u64(&mut self) -> u64 {
+        let w = mix64(self.state);
+        self.state = self.state.wrapping_add(SM_GAMMA);
+        w
+    }
+
+    /// The next `out.len()` words (the same as that many [`SplitMix::next_u64`]), as one
+    /// loop of independent words that the compiler vectorizes.
+    #[inline(always)]
+    pub fn fill(&mut self, out: &mut [u64]) {
+        let s = self.state;
+        for (k, w) in out.iter_mut().enumerate() {
+            *w = mix64(s.wrapping_add((k as u64).wrapping_mul(SM_GAMMA)));
+        }
+        self.state = s.wrapping_add((out.len() as u64).wrapping_mul(SM_GAMMA));
+    }
+}
+
+/// `floor(x n / 2^32)`: an integer in [0, n) from 32 random bits `x` (Lemire's multiply;
+/// bias below `n / 2^32`).
+#[inline(always)]
+pub fn below(x: u32, n: u32) -> u32 {
+    ((x as u64 * n as u64) >> 32) as u32
+}
+
+/// One round of Kensler's hashed permutation ("Correlated multi-jittered sampling",
+/// Pixar Technical Memo 13-01, 2013, `permute`): a bijection of `[0, w]` keyed by `p`,
+/// for `w = 2^b - 1`.
+#[inline(always)]
+fn permute_round(mut i: u32, w: u32, p: u32) -> u32 {
+    i ^= p;
+    i = i.wrapping_mul(0xE170_893D);
+    i ^= p >> 16;
+    i ^= (i & w) >> 4;
+    i ^= p >> 8;
+    i = i.wrapping_mul(0x0929_EB3F);
+    i ^= p >> 23;
+    i ^= (i & w) >> 1;
+    i = i.wrapping_mul(1 | p >> 27);
+    i = i.wrapping_mul(0x6935_FA69);
+    i ^= (i & w) >> 11;
+    i = i.wrapping_mul(0x74DC_B303);
+    i ^= (i & w) >> 2;
+    i = i.wrapping_mul(0x9E50_1CC3);
+    i ^= (i & w) >> 2;
+    i = i.wrapping_mul(0xC860_A3DF);
+    i &= w;
+    i ^ (i >> 5)
+}
+
+/// A random-looking permutation of `[0, perm.len())` into `perm`, keyed by `key`, then
+/// rotated by `offset` (taken modulo the length): Kensler's hashed permutation (2013), its
+/// rounds for all indices as one vector pass, then cycle-walking (another round until the
+/// value falls inside) for the few that land past the end when the length is not a power
+/// of 2. With `offset` uniform, every `perm[k]` is uniform on `[0, len)` whatever the key,
+/// as in a Fisher-Yates shuffle, at a fraction of its cost (no chain of dependent swaps).
+#[inline(always)]
+pub fn hashed_permutation(perm: &mut [u32], key: u32, offset: u32) {
+    let l = perm.len() as u32;
+    if l == 0 {
+        return;
+    }
+    let w = u32::MAX >> (l - 1).leading_zeros().min(31);
+    let w = if l == 1 { 0 } else { w };
+    for (k, q) in perm.iter_mut().enumerate() {
+        *q = permute_round(k as u32, w, key);
+    }
+    if w + 1 != l {
+        for q in perm.iter_mut() {
+            while *q >= l {
+                *q = permute_round(*q, w, key);
+            }
+        }
+    }
+    let offset = offset % l;
+    for q in perm.iter_mut() {
+        let v = *q + offset;
+        *q = if v >= l { v - l } else { v };
     }
 }
 
@@ -267,6 +367,95 @@ mod tests {
         far.state = far.state.wrapping_add(WY_INC.wrapping_mul(1 << 32));
         assert_eq!(base.substream(1).next_u64(), far.next_u64());
         assert_ne!(base.substream(1).next_u64(), base.substream(2).next_u64());
+    }
+
+    #[test]
+    fn splitmix_fill_is_the_stream_and_uniform() {
+        let mut a = SplitMix::keyed(1, 2, 3, 4);
+        let mut b = a.clone();
+        let mut words = vec![0u64; 1001];
+        a.fill(&mut words);
+        for &w in &words {
+            assert_eq!(w, b.next_u64());
+        }
+        // The stream goes on where the fill stopped.
+        assert_eq!(a.next_u64(), b.next_u64());
+        assert_ne!(
+            SplitMix::keyed(1, 2, 3, 4).next_u64(),
+            SplitMix::keyed(1, 3, 2, 4).next_u64()
+        );
+        // Moments of the 32-bit halves as 24-bit floats, and the lag-one correlation.
+        let mut r = SplitMix::keyed(9, 0, 0, 0);
+        let mut w = vec![0u64; 100_000];
+        r.fill(&mut w);
+        let xs: Vec<f64> = w
+            .iter()
+            .flat_map(|&w| [unit_f32(w as u32) as f64, unit_f32((w >> 32) as u32) as f64])
+            .collect();
+        let m = xs.len() as f64;
+        let mean = xs.iter().sum::<f64>() / m;
+        let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / m;
+        let cov = xs
+            .windows(2)
+            .map(|w| (w[0] - 0.5) * (w[1] - 0.5))
+            .sum::<f64>()
+            / (m - 1.0);
+        // Three checks at 5 standard errors each (the variance's is sqrt(1/180 / m)).
+        assert!((mean - 0.5).abs() < 5.0 * (1.0 / 12.0 / m).sqrt(), "{mean}");
+        assert!(
+            (var - 1.0 / 12.0).abs() < 5.0 * (1.0 / 180.0 / m).sqrt(),
+            "{var}"
+        );
+        assert!(cov.abs() < 5.0 / 12.0 / m.sqrt(), "{cov}");
+    }
+
+    #[test]
+    fn hashed_permutations_are_permutations() {
+        let mut perm = Vec::new();
+        let mut seen = Vec::new();
+        for l in (0..=300).chain([511, 512, 513, 1000, 4096, 65_537]) {
+            for key in [0u32, 1, 0xDEAD_BEEF, u32::MAX] {
+                for offset in [0u32, 1, 77, u32::MAX] {
+                    perm.resize(l, 0);
+                    hashed_permutation(&mut perm, key, offset);
+                    seen.clear();
+                    seen.resize(l, false);
+                    for &q in &perm {
+                        assert!((q as usize) < l && !seen[q as usize], "l {l} key {key}");
+                        seen[q as usize] = true;
+                    }
+                }
+            }
+        }
+        // Different keys give different permutations (not just rotations of one).
+        let (mut a, mut b) = (vec![0u32; 256], vec![0u32; 256]);
+        hashed_permutation(&mut a, 1, 0);
+        hashed_permutation(&mut b, 2, 0);
+        assert!((0..256).all(|o| (0..256).any(|k| b[k] != (a[k] + o) % 256)));
+    }
+
+    #[test]
+    fn hashed_permutation_entries_are_uniform_over_keys() {
+        // With a uniform offset, each entry of the permutation is uniform on [0, l): the
+        // property that keeps a random pairing of strata unbiased. Chi-square of where
+        // entries 0 and 17 land over 20,000 keyed draws, l = 24 (not a power of 2).
+        let l = 24usize;
+        let n = 20_000;
+        let mut rng = SplitMix::keyed(3, 0, 0, 0);
+        let mut perm = vec![0u32; l];
+        let mut counts = [vec![0usize; l], vec![0usize; l]];
+        for _ in 0..n {
+            let w = rng.next_u64();
+            hashed_permutation(&mut perm, w as u32, below((w >> 32) as u32, l as u32));
+            counts[0][perm[0] as usize] += 1;
+            counts[1][perm[17] as usize] += 1;
+        }
+        let e = n as f64 / l as f64;
+        for c in &counts {
+            let chi2: f64 = c.iter().map(|&o| (o as f64 - e).powi(2) / e).sum();
+            // 23 degrees of freedom: P(chi2 > 55) < 2e-4 per check.
+            assert!(chi2 < 55.0, "chi2 {chi2}: {c:?}");
+        }
     }
 
     #[test]

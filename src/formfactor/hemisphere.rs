@@ -11,11 +11,13 @@
 //!
 //! Positions are jittered on an `s x s` grid of the patch and directions on an `s x s`
 //! grid of the unit square mapped by Shirley and Chiu's concentric disk map (1997) lifted to
-//! the hemisphere, strata paired by a random permutation. `R` independent replicates give
-//! the standard error of each entry.
+//! the hemisphere, strata paired by a random permutation (Kensler's hashed permutation,
+//! rotated by a uniform offset so that every ray's position cell is uniform: each ray's
+//! estimate, hence the row, stays unbiased). `R` independent replicates give the standard
+//! error of each entry.
 //!
 //! Sampling runs in `f32` over chunks of rays (structure of arrays, 24 random bits per
-//! coordinate from a counter-based [`Wy`] stream, a polynomial sine and cosine in the
+//! coordinate from a counter-based [`SplitMix`] stream, a polynomial sine and cosine in the
 //! concentric map, compiled for AVX2 or AVX-512 where available: [`crate::simd`]). The rays of a
 //! replicate go out in Z-order of their direction cells, so that each packet of 16 is
 //! coherent, and are traced 16 at a time (`rtcIntersect16`); the side of a patch a ray
@@ -27,7 +29,7 @@
 use glam::Vec3;
 
 use super::{Context, Entry, Estimator, Row};
-use crate::sampling::{jitter4, Wy};
+use crate::sampling::{below, hashed_permutation, jitter4, SplitMix};
 use crate::visibility::{Rays, NO_HIT};
 
 /// Rays made, traced and counted together: a chunk's sampling buffers (about 3 KB) stay
@@ -155,12 +157,6 @@ pub fn cosine_directions(u: &[f32], v: &[f32], out: &mut [Vec<f32>; 3]) {
     }
 }
 
-/// `floor(x n / 2^32)`: an integer in [0, n) from 32 random bits `x`.
-#[inline(always)]
-fn below(x: u32, n: u32) -> usize {
-    ((x as u64 * n as u64) >> 32) as usize
-}
-
 /// Per-thread buffers of [`Hemisphere::row_with`], kept between rows.
 #[derive(Default)]
 struct Scratch {
@@ -254,24 +250,13 @@ impl Hemisphere {
         for r in 0..reps {
             // Ray k leaves a jittered point of position cell perm[k] in a jittered
             // direction of direction cell k, the direction cells taken in Z-order: a
-            // random pairing of the two stratifications (Fisher-Yates permutation from the
-            // (seed, i, replicate) stream), with consecutive rays close in direction, so
+            // random pairing of the two stratifications (a hashed permutation keyed from
+            // the (seed, i, replicate) stream), with consecutive rays close in direction, so
             // that each packet of 16 is coherent.
-            let mut rng = Wy::keyed(ctx.seed, i as u64, u64::MAX, r as u64);
+            let mut rng = SplitMix::keyed(ctx.seed, i as u64, u64::MAX, r as u64);
+            let key = rng.next_u64();
             let perm = &mut s.perm[..m];
-            for (k, q) in perm.iter_mut().enumerate() {
-                *q = k as u32;
-            }
-            // Two 32-bit draws per word (Lemire's multiply, bias below 2^-32 m).
-            let mut k = m - 1;
-            while k >= 1 {
-                let w = rng.next_u64();
-                perm.swap(k, below(w as u32, k as u32 + 1));
-                if k >= 2 {
-                    perm.swap(k - 1, below((w >> 32) as u32, k as u32));
-                }
-                k = k.saturating_sub(2);
-            }
+            hashed_permutation(perm, key as u32, below((key >> 32) as u32, m as u32));
             // Two words per ray, then converted in a vector pass: word 2k jitters the
             // position, word 2k + 1 the direction.
             rng.fill(&mut s.words[..2 * m]);
