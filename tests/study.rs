@@ -25,10 +25,11 @@ fn rms(runs: &[Run]) -> f64 {
 /// are each at least 4x more accurate (RMS over 40 seeds, all in one run) than independent
 /// uniform pairs.
 ///
-/// Measured at 65 536 (docs/ESTIMATORS.md): uniform 1.2e-6, stratified 2.1e-7 (5.6x; one
-/// jittered pair per cell of a 4D grid over both patches), Sobol 2.6e-9 (460x). The RMS over
-/// 40 seeds has a relative spread near 1/sqrt(2 × 40) = 11%, so a ratio near 5.6 falling
-/// under 4 takes a 2-sigma fluctuation of the ratio, and Sobol's a 100-fold one.
+/// Measured here (40 seeds, 100 000 pairs): uniform 7.9e-7, stratified 1.4e-7 (5.5x; one
+/// jittered pair per cell of a 4D grid over both patches), Sobol 1.6e-8 (49x; 3.6e-9 at
+/// 65 536 pairs in docs/ESTIMATORS.md, 210x). The RMS over 40 seeds has a relative spread
+/// near 1/sqrt(2 × 40) = 11%, so a ratio near 5.5 falling under 4 takes a 2-sigma
+/// fluctuation of the ratio, and Sobol's a 12-fold one.
 #[test]
 fn stratified_and_sobol_beat_uniform_by_4x_on_far_parallel() {
     let p = prepared(&["far"]);
