@@ -303,6 +303,26 @@ pub fn hashed_permutation(perm: &mut [u32], key: u32, offset: u32) {
 mod tests {
     use super::*;
 
+    /// Mean, variance and lag-one correlation (the two halves of a word, and consecutive
+    /// words) of samples that should be uniform on [0, 1): three checks at 5 standard
+    /// errors each (the variance's is `sqrt(1/180 / m)`).
+    fn assert_uniform_moments(xs: &[f64]) {
+        let m = xs.len() as f64;
+        let mean = xs.iter().sum::<f64>() / m;
+        let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / m;
+        let cov = xs
+            .windows(2)
+            .map(|w| (w[0] - 0.5) * (w[1] - 0.5))
+            .sum::<f64>()
+            / (m - 1.0);
+        assert!((mean - 0.5).abs() < 5.0 * (1.0 / 12.0 / m).sqrt(), "{mean}");
+        assert!(
+            (var - 1.0 / 12.0).abs() < 5.0 * (1.0 / 180.0 / m).sqrt(),
+            "{var}"
+        );
+        assert!(cov.abs() < 5.0 / 12.0 / m.sqrt(), "{cov}");
+    }
+
     #[test]
     fn streams_differ_and_repeat() {
         let a: Vec<u32> = (0..4)
@@ -344,21 +364,7 @@ mod tests {
             xs.push(u as f64);
             xs.push(v as f64);
         }
-        let m = xs.len() as f64;
-        let mean = xs.iter().sum::<f64>() / m;
-        let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / m;
-        // Lag-one correlation of the two halves of a word and of consecutive words.
-        let cov = xs
-            .windows(2)
-            .map(|w| (w[0] - 0.5) * (w[1] - 0.5))
-            .sum::<f64>()
-            / (m - 1.0);
-        assert!(
-            (mean - 0.5).abs() < 5.0 * (1.0f64 / 12.0 / m).sqrt(),
-            "{mean}"
-        );
-        assert!((var - 1.0 / 12.0).abs() < 2e-3, "{var}");
-        assert!(cov.abs() < 5.0 / 12.0 / m.sqrt(), "{cov}");
+        assert_uniform_moments(&xs);
         assert_eq!(unit_f32(u32::MAX), 1.0 - 1.0 / 16_777_216.0);
         // Substream 0 is the stream itself; substream 1 starts 2^32 draws further on.
         let base = Wy::keyed(1, 2, 3, 0);
@@ -392,21 +398,7 @@ mod tests {
             .iter()
             .flat_map(|&w| [unit_f32(w as u32) as f64, unit_f32((w >> 32) as u32) as f64])
             .collect();
-        let m = xs.len() as f64;
-        let mean = xs.iter().sum::<f64>() / m;
-        let var = xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / m;
-        let cov = xs
-            .windows(2)
-            .map(|w| (w[0] - 0.5) * (w[1] - 0.5))
-            .sum::<f64>()
-            / (m - 1.0);
-        // Three checks at 5 standard errors each (the variance's is sqrt(1/180 / m)).
-        assert!((mean - 0.5).abs() < 5.0 * (1.0 / 12.0 / m).sqrt(), "{mean}");
-        assert!(
-            (var - 1.0 / 12.0).abs() < 5.0 * (1.0 / 180.0 / m).sqrt(),
-            "{var}"
-        );
-        assert!(cov.abs() < 5.0 / 12.0 / m.sqrt(), "{cov}");
+        assert_uniform_moments(&xs);
     }
 
     #[test]
