@@ -488,11 +488,8 @@ pub fn run() -> Result<()> {
                 significant(p.seconds, 4)
             );
             println!(
-                "row sums in [{:.5}, {:.5}], reciprocity error <= {:.1e}; peak memory {}",
-                d.min_row_sum,
-                d.max_row_sum,
-                d.reciprocity,
-                pipeline::mib(s.peak_memory)
+                "row sums in [{:.5}, {:.5}], reciprocity error <= {:.1e}",
+                d.min_row_sum, d.max_row_sum, d.reciprocity,
             );
             println!("bounds: {}", s.repair.before.summary());
             if s.repair.repair != Repair::None {
@@ -503,6 +500,7 @@ pub fn run() -> Result<()> {
                     s.repair.after.summary()
                 );
             }
+            println!("{}", pipeline::format_times(&s.stages, s.peak_memory));
             println!(
                 "wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json}}",
                 args.output.display()

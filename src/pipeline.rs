@@ -479,8 +479,8 @@ pub fn factors(
     })?;
     let (ff, stages, _) = form_factors(&patches, estimator, seed, obs)?;
     timer.stages.extend(stages);
-    let (ff, repair_report) = repair::apply(ff, repair);
-    let diagnostics = ff.diagnostics();
+    let (ff, repair_report) = timer.run("repair", 0, || repair::apply(ff, repair));
+    let diagnostics = timer.run("diagnostics", 0, || ff.diagnostics());
     let provenance = timer.run("write", 0, || store::write(out_dir, &patches, &ff))?;
     Ok(FactorsSummary {
         provenance,
@@ -496,12 +496,23 @@ pub fn mib(bytes: u64) -> String {
     format!("{:.1} MiB", bytes as f64 / (1024.0 * 1024.0))
 }
 
+/// `time: STAGE SECONDS, ..., total SECONDS; peak memory MIB`: the last line of a summary.
+pub fn format_times(stages: &[StageTime], peak_memory: u64) -> String {
+    use std::fmt::Write;
+    let mut o = String::from("time:");
+    for t in stages {
+        let _ = write!(o, " {} {:.2}s,", t.stage, t.seconds);
+    }
+    let total: f64 = stages.iter().map(|t| t.seconds).sum();
+    let _ = write!(o, " total {total:.2}s; peak memory {}", mib(peak_memory));
+    o
+}
+
 /// The one-screen summary printed after a bake.
 pub fn format_summary(s: &BakeSummary) -> String {
     use std::fmt::Write;
     let mut o = String::new();
     let ff_s = s.stage_seconds("form factors");
-    let total: f64 = s.stages.iter().map(|t| t.seconds).sum();
     let _ = writeln!(
         o,
         "baked `{}`: {} patches, {} triangles, {} vertices",
@@ -559,11 +570,7 @@ pub fn format_summary(s: &BakeSummary) -> String {
     for n in &s.solve.notes {
         let _ = writeln!(o, "note: {n}");
     }
-    let _ = write!(o, "time:");
-    for t in &s.stages {
-        let _ = write!(o, " {} {:.2}s,", t.stage, t.seconds);
-    }
-    let _ = writeln!(o, " total {total:.2}s; peak memory {}", mib(s.peak_memory));
+    let _ = writeln!(o, "{}", format_times(&s.stages, s.peak_memory));
     for w in &s.warnings {
         let _ = writeln!(o, "warning: {w}");
     }

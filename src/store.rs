@@ -16,6 +16,7 @@ use std::fmt::Write as _;
 use std::io::Write as _;
 use std::path::Path;
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
@@ -67,7 +68,27 @@ pub fn geometry_hash(patches: &PatchSet) -> String {
     format!("{h:016x}")
 }
 
+/// Entries formatted by one task of [`write_mtx`] (whole rows, so a few more).
+const PIECE: usize = 1 << 16;
+
+/// Tasks formatted in parallel before their text is written out: the memory held at once is
+/// about `PIECES x PIECE` lines (some 100 MB).
+const PIECES: usize = 64;
+
+/// Writes `values` (aligned with `ff.f`'s entries) as a Matrix Market file: the lines are
+/// formatted in parallel, a batch of row ranges at a time, and written in row order.
 fn write_mtx(path: &Path, ff: &FormFactors, values: &[f64]) -> Result<()> {
+    write_mtx_in(path, ff, values, PIECE, PIECES)
+}
+
+/// [`write_mtx`] with tasks of about `piece` entries, `pieces` of them at a time.
+fn write_mtx_in(
+    path: &Path,
+    ff: &FormFactors,
+    values: &[f64],
+    piece: usize,
+    pieces_at_once: usize,
+) -> Result<()> {
     write_atomic(path, |tmp| {
         let file = std::fs::File::create(tmp).map_err(|e| Error::io(tmp, e))?;
         let mut w = std::io::BufWriter::new(file);
@@ -82,11 +103,38 @@ fn write_mtx(path: &Path, ff: &FormFactors, values: &[f64]) -> Result<()> {
         )
         .map_err(io)?;
         writeln!(w, "{n} {n} {}", ff.f.nnz()).map_err(io)?;
-        let mut k = 0;
-        for (i, row) in ff.f.outer_iterator().enumerate() {
-            for (j, _) in row.iter() {
-                writeln!(w, "{} {} {:e}", i + 1, j + 1, values[k]).map_err(io)?;
-                k += 1;
+        // The matrix is owned: its row pointers start at 0 and index `indices` and `values`.
+        let ptr = ff.f.indptr();
+        let ptr = ptr.to_proper();
+        let indices = ff.f.indices();
+        // Row ranges of about `piece` entries each.
+        let mut pieces = Vec::new();
+        let mut lo = 0;
+        while lo < n {
+            let mut hi = lo + 1;
+            while hi < n && ptr[hi + 1] - ptr[lo] < piece {
+                hi += 1;
+            }
+            pieces.push(lo..hi);
+            lo = hi;
+        }
+        for batch in pieces.chunks(pieces_at_once) {
+            let texts: Vec<Vec<u8>> = batch
+                .par_iter()
+                .map(|rows| {
+                    let (a, b) = (ptr[rows.start], ptr[rows.end]);
+                    let mut t = Vec::with_capacity((b - a) * 28);
+                    for i in rows.clone() {
+                        for k in ptr[i]..ptr[i + 1] {
+                            // Writing into a vector cannot fail.
+                            let _ = writeln!(t, "{} {} {:e}", i + 1, indices[k] + 1, values[k]);
+                        }
+                    }
+                    t
+                })
+                .collect();
+            for t in &texts {
+                w.write_all(t).map_err(io)?;
             }
         }
         w.flush().map_err(io)
@@ -229,4 +277,50 @@ pub fn read(dir: &Path, patches: &PatchSet) -> Result<FormFactors> {
         estimator: prov.estimator,
         seed: prov.seed,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::formfactor::Entry;
+
+    #[test]
+    fn matrix_market_text_does_not_depend_on_the_pieces() {
+        // Rows of 0 to 6 entries, empty rows included, written whole, in pieces of one row
+        // or a few entries, one or two pieces at a time: the same file, line by line as
+        // the rows list them.
+        let n = 9;
+        let rows: Vec<Vec<Entry>> = (0..n)
+            .map(|i| {
+                (0..(i * 5) % 7)
+                    .map(|j| Entry {
+                        j: j as u32,
+                        f: (i * 10 + j) as f64 / 97.0,
+                        se: 1e-3 / (j + 1) as f64,
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut want = String::new();
+        for (i, r) in rows.iter().enumerate() {
+            for e in r {
+                let _ = writeln!(want, "{} {} {:e}", i + 1, e.j + 1, e.f);
+            }
+        }
+        let ff = FormFactors::from_rows(rows, vec![1.0; n], 0, 0.0, "test".into(), 0);
+        let dir = std::env::temp_dir().join(format!("radiosity-mtx-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("F.mtx");
+        for (piece, at_once) in [(PIECE, PIECES), (1, 1), (3, 2), (4, 64)] {
+            write_mtx_in(&path, &ff, ff.f.data(), piece, at_once).unwrap();
+            let text = std::fs::read_to_string(&path).unwrap();
+            let body: String = text.lines().skip(3).map(|l| format!("{l}\n")).collect();
+            assert_eq!(body, want, "piece {piece}, {at_once} at once");
+            assert_eq!(
+                text.lines().nth(2),
+                Some(format!("{n} {n} {}", ff.f.nnz()).as_str())
+            );
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }
