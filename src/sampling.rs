@@ -64,7 +64,7 @@ impl Pcg32 {
     /// for n far below 2^32: the bias is below 2^-32 n).
     #[inline]
     pub fn below(&mut self, n: u32) -> u32 {
-        ((self.next_u32() as u64 * n as u64) >> 32) as u32
+        below(self.next_u32(), n)
     }
 }
 
@@ -131,7 +131,7 @@ impl Wy {
     /// Uniform integer in [0, n) from 32 bits (Lemire's multiply; bias below 2^-32 n).
     #[inline(always)]
     pub fn below(&mut self, n: u32) -> u32 {
-        ((self.next_u64() as u32 as u64 * n as u64) >> 32) as u32
+        below(self.next_u64() as u32, n)
     }
 }
 
@@ -280,8 +280,8 @@ pub fn hashed_permutation(perm: &mut [u32], key: u32, offset: u32) {
     if l == 0 {
         return;
     }
-    let w = u32::MAX >> (l - 1).leading_zeros().min(31);
-    let w = if l == 1 { 0 } else { w };
+    // The smallest all-ones mask covering l - 1 (0 for a single element).
+    let w = u32::MAX.checked_shr((l - 1).leading_zeros()).unwrap_or(0);
     for (k, q) in perm.iter_mut().enumerate() {
         *q = permute_round(k as u32, w, key);
     }
