@@ -218,13 +218,18 @@ impl EmbreeScene {
                 sys::rtcReleaseGeometry(geom);
                 return Err(self.error("rtcSetNewGeometryBuffer"));
             }
-            let vs = std::slice::from_raw_parts_mut(vb, vertices.len() * 3);
+            // The buffers are uninitialised memory: no slice or reference is made over
+            // them; each item is written through the raw pointer (`ptr::write` of an
+            // `f32`/`u32`, 4-byte aligned as Embree's buffers are 16-byte aligned).
             for (k, v) in vertices.iter().enumerate() {
-                vs[3 * k..3 * k + 3].copy_from_slice(&[v.x, v.y, v.z]);
+                for (c, x) in [v.x, v.y, v.z].into_iter().enumerate() {
+                    vb.add(3 * k + c).write(x);
+                }
             }
-            let is = std::slice::from_raw_parts_mut(ib, triangles.len() * 3);
             for (k, t) in triangles.iter().enumerate() {
-                is[3 * k..3 * k + 3].copy_from_slice(t);
+                for (c, &x) in t.iter().enumerate() {
+                    ib.add(3 * k + c).write(x);
+                }
             }
             sys::rtcCommitGeometry(geom);
             sys::rtcAttachGeometry(self.scene, geom);
