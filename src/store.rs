@@ -59,8 +59,10 @@ pub fn geometry_hash(patches: &PatchSet) -> String {
     for i in 0..patches.len() {
         let (pts, n) = patches.corner_points(i);
         eat(&(n as u32).to_le_bytes());
+        // The f32 roundings of the corners: folders written before geometry became f64
+        // keep their hash.
         for p in &pts[..n] {
-            for c in p.to_array() {
+            for c in p.as_vec3().to_array() {
                 eat(&c.to_bits().to_le_bytes());
             }
         }

@@ -133,7 +133,7 @@ fn cube_face_to_face_factors_to_1e9() {
     let (patches, ff) = factors("cube", Resolution::MaxEdge(0.125), &est, 1);
     assert_eq!(patches.len(), 384);
     assert_eq!(ff.rays, 0, "a convex room needs no visibility rays");
-    let face = |n: glam::Vec3| -> usize {
+    let face = |n: glam::DVec3| -> usize {
         let a = n.abs();
         let k = if a.x >= a.y && a.x >= a.z {
             0

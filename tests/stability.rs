@@ -4,7 +4,7 @@
 
 use std::path::PathBuf;
 
-use glam::Vec3;
+use glam::DVec3;
 use radiosity::analytic::perpendicular_rectangles;
 use radiosity::formfactor::area::kernel;
 use radiosity::matrix::FormFactors;
@@ -256,10 +256,10 @@ fn noisy_rows_above_one_stay_bounded_and_are_reported() {
 /// stays exact against Howell C-14.
 #[test]
 fn shared_edge_is_finite_and_semi_analytic_stays_exact() {
-    let (x, n_x, n_y) = (Vec3::new(0.0, 0.5, 0.0), Vec3::Z, Vec3::X);
+    let (x, n_x, n_y) = (DVec3::new(0.0, 0.5, 0.0), DVec3::Z, DVec3::X);
     assert_eq!(kernel(x, n_x, x, n_y), None);
-    for eps in [1e-3f32, 1e-6, 1e-12, 1e-30] {
-        let k = kernel(x, n_x, x + Vec3::new(eps, 0.0, eps), n_y);
+    for eps in [1e-3f64, 1e-6, 1e-12, 1e-30] {
+        let k = kernel(x, n_x, x + DVec3::new(eps, 0.0, eps), n_y);
         assert!(k.is_none_or(|v| v.is_finite()), "eps {eps}: {k:?}");
     }
     let exact = perpendicular_rectangles(1.0, 1.0, 1.0);

@@ -2,6 +2,7 @@
 
 mod bake;
 mod formfactors;
+mod geometry;
 mod invalid;
 mod shelf;
 mod stability;

@@ -27,21 +27,23 @@
 //! The inner loop works in `f32` over all the samples of a pair at once (structure of
 //! arrays): unit-square coordinates with 24 random bits each from a counter-based
 //! [`Wy`] stream, points on both patches, kernel and segment rays; the replicate sums are
-//! accumulated in `f64`. Positions were `f32` already (as Embree takes them); the kernel's
-//! rounding error (a few ulp, about 1e-7 relative) is far below any standard error.
+//! accumulated in `f64`. The points are made in `f32` (from corners rounded once from the
+//! f64 geometry) because they are the segment rays' ends, which Embree takes in `f32`; the
+//! kernel's rounding error (a few ulp, about 1e-7 relative) is far below any standard
+//! error. Culling is decided in f64 on the exact corners.
 //!
 //! Patches that share an edge make `cos cos / r²` unbounded: the estimate stays finite and
 //! unbiased but its variance is infinite, and the replicate error bar is then only
 //! indicative (the heavy tail shows as replicates that disagree).
 
-use glam::Vec3;
+use glam::{DVec3, Vec3};
 
 use super::{Context, Entry, Estimator, Row};
 use std::f64::consts::FRAC_1_PI;
 
 use crate::mesh::PatchSampler;
 use crate::sampling::{jitter4, Wy};
-use crate::visibility::{Rays, Segments};
+use crate::visibility::{Offsets, Rays, Segments, SEGMENT_TFAR};
 
 /// How points are placed on each patch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -105,10 +107,10 @@ fn behind(ctx: &Context, a: usize, b: usize) -> bool {
 
 /// [`behind`] with the corners of patch `b` given.
 #[inline]
-fn behind_plane(ctx: &Context, a: usize, corners: &[Vec3]) -> bool {
+fn behind_plane(ctx: &Context, a: usize, corners: &[DVec3]) -> bool {
     let p = ctx.patches;
     let (n, c) = (p.normal[a], p.centroid[a]);
-    let tol = 1e-6 * p.diagonal as f32;
+    let tol = p.plane_tol();
     corners.iter().all(|&q| n.dot(q - c) <= tol)
 }
 
@@ -171,7 +173,7 @@ impl AreaMc {
         &self,
         ctx: &Context,
         a: usize,
-        (pa, on_a): (&[Vec3], &PatchSampler),
+        (pa, on_a): (&[DVec3], &PatchSampler),
         m: usize,
         row: &mut Row,
         visible: &mut dyn FnMut(&Segments, &mut [bool]),
@@ -237,15 +239,15 @@ impl AreaMc {
         // passes simple enough for the compiler to run 4 samples at a time: unit-square
         // coordinates, points on both patches, then kernel and segment rays.
         self.unit_square(ctx.seed, a, b, m, reps, s);
-        let (n_a, n_b) = (p.normal[a], p.normal[b]);
+        let (n_a, n_b) = (p.normal[a].as_vec3(), p.normal[b].as_vec3());
         on_a.points32(&s.u[0], &s.u[1], &mut s.x);
         on_b.points32(&s.u[2], &s.u[3], &mut s.y);
-        let eps = ctx.vis.eps();
+        let off = ctx.vis.offsets();
         // Kernel, facing test and segment ray of every sample pair, as structure of arrays
         // (the layout of Embree's packets); then, in the rare pairs where some samples do
         // not face each other, those are dropped.
         segments(
-            &s.x, n_a, &s.y, n_b, eps, &mut s.g, &mut s.ok, &mut s.org, &mut s.dir,
+            &s.x, n_a, &s.y, n_b, off, &mut s.g, &mut s.ok, &mut s.org, &mut s.dir,
         );
         s.ends.clear();
         let n = if s.ok[..len].iter().all(|&v| v) {
@@ -385,9 +387,9 @@ impl AreaMc {
 /// For each sample pair `(x_k, y_k)`: the kernel `cos θ_x cos θ_y / r²` (without the 1/π)
 /// into `g`, whether the two points face each other into `ok` (the kernel is positive and a
 /// ray is needed), and the segment ray between them into `org`/`dir` (structure of
-/// arrays): both ends moved off their surfaces along their own normals, the case
-/// [`crate::visibility::Visibility::segment_ray`] selects for facing points, without its
-/// two tests.
+/// arrays): both ends moved off their surfaces along their own normals by the one offset
+/// policy ([`Offsets::ends`]), the case [`crate::visibility::Visibility::segment_ray`]
+/// selects for facing points, without its two tests.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn segments(
@@ -395,7 +397,7 @@ fn segments(
     n_x: Vec3,
     y: &[Vec<f32>; 3],
     n_y: Vec3,
-    eps: f32,
+    off: Offsets,
     g: &mut [f32],
     ok: &mut [bool],
     org: &mut [Vec<f32>; 3],
@@ -409,7 +411,6 @@ fn segments(
     let (o0, o1, o2) = (&mut o0[..len], &mut o1[..len], &mut o2[..len]);
     let [d0, d1, d2] = dir;
     let (d0, d1, d2) = (&mut d0[..len], &mut d1[..len], &mut d2[..len]);
-    let (ox, oy) = (n_x * eps, n_y * eps);
     for k in 0..len {
         let (dx, dy, dz) = (y0[k] - x0[k], y1[k] - x1[k], y2[k] - x2[k]);
         let r2 = dx * dx + dy * dy + dz * dz;
@@ -418,15 +419,14 @@ fn segments(
         let inv = 1.0 / r2;
         g[k] = (cx * inv) * (cy * inv);
         ok[k] = (cx > 0.0) & (cy > 0.0) & (r2 > 0.0);
+        let (ex, ey) = off.ends(cx.abs(), cy.abs());
+        let (ox, oy) = (n_x * ex, n_y * ey);
         let org = (x0[k] + ox.x, x1[k] + ox.y, x2[k] + ox.z);
         let end = (y0[k] + oy.x, y1[k] + oy.y, y2[k] + oy.z);
         (o0[k], o1[k], o2[k]) = org;
         (d0[k], d1[k], d2[k]) = (end.0 - org.0, end.1 - org.1, end.2 - org.2);
     }
 }
-
-/// `tfar` of a segment ray ([`crate::visibility::Visibility::segment_ray`]).
-const SEGMENT_TFAR: f32 = 1.0 - 1e-4;
 
 /// Per-thread buffers of [`AreaMc::pair_with`], kept between pairs: one entry per sample
 /// pair of all replicates, as structure of arrays.
@@ -478,11 +478,11 @@ thread_local! {
 /// The unoccluded point-to-point kernel `cos θ_x cos θ_y / (π r²)`, or `None` when the
 /// points face away from each other (no ray needed).
 #[inline]
-pub fn kernel(x: Vec3, n_x: Vec3, y: Vec3, n_y: Vec3) -> Option<f64> {
-    let d = (y - x).as_dvec3();
+pub fn kernel(x: DVec3, n_x: DVec3, y: DVec3, n_y: DVec3) -> Option<f64> {
+    let d = y - x;
     let r2 = d.length_squared();
-    let cx = n_x.as_dvec3().dot(d);
-    let cy = -n_y.as_dvec3().dot(d);
+    let cx = n_x.dot(d);
+    let cy = -n_y.dot(d);
     if cx <= 0.0 || cy <= 0.0 || r2 <= 0.0 {
         return None;
     }

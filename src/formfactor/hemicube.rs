@@ -98,11 +98,12 @@ impl Estimator for Hemicube {
     fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
         let p = ctx.patches;
         let n_i = p.normal[i];
-        let (t, b) = basis(n_i);
+        let (t, b) = basis(n_i.as_vec3());
+        let (t, b) = (t.as_dvec3(), b.as_dvec3());
         let x = p.centroid[i];
         let mut acc: Vec<(u32, f64)> = Vec::new();
         for (d, w) in self.cells() {
-            let dir = (t * d[0] as f32 + b * d[1] as f32 + n_i * d[2] as f32).normalize();
+            let dir = (t * d[0] + b * d[1] + n_i * d[2]).normalize();
             row.rays += 1;
             if let Some(h) = ctx.vis.first_hit(x, n_i, dir) {
                 if h.patch as usize != i && p.normal[h.patch as usize].dot(dir) < 0.0 {

@@ -261,7 +261,7 @@ impl Hemisphere {
         let st = self.strata.max(1);
         let m = st * st;
         s.prepare(st, m, p.len(), reps);
-        let n_i = p.normal[i];
+        let n_i = p.normal[i].as_vec3();
         let (t, b) = basis(n_i);
         let off = n_i * ctx.vis.eps();
         // Origins are pulled toward the centroid by PULL of their distance: a jittered point
@@ -269,7 +269,7 @@ impl Hemisphere {
         // and a ray from there into that wall starts at t = 0 and escapes through it (one
         // ray in 6.3 M leaked so on the 32 x 32 cube). The pull keeps origins strictly
         // inside the patch, a relative shift of the sampled region far below the noise.
-        let centroid = p.centroid[i];
+        let centroid = p.centroid[i].as_vec3();
         let on_i = p.sampler(i);
         let inv = 1.0 / st as f32;
         let n = p.len();

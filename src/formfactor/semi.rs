@@ -29,7 +29,9 @@
 //! when its bounding box misses the box of the two patches. When every other patch is
 //! excluded, the pair is unoccluded. The test is conservative (a box overlap does not prove
 //! an occlusion), and costs nothing per pair in a convex room, where every patch is a hull
-//! face.
+//! face. It runs in f64 with the tolerance [`PatchSet::plane_tol`] (relative to the scene,
+//! far above rounding and far below real separations), so a scene and any scaling or rigid
+//! motion of it take the same path.
 //!
 //! **Other pairs are sampled.** `points²` jittered nodes per replicate on the emitter (one
 //! per stratum, uniform by area) and, at each node, `v` estimated by rays to `vis_rays²`
@@ -43,7 +45,7 @@
 
 use std::sync::{Arc, Mutex};
 
-use glam::{DVec3, Vec3};
+use glam::DVec3;
 
 use super::area::kernel;
 use super::exact::{self, Emitter, Piece, Receiver};
@@ -67,7 +69,7 @@ struct Prepared {
     /// Fingerprint of the patch set it was computed for.
     key: u64,
     /// Bounding box of every patch.
-    boxes: Vec<(Vec3, Vec3)>,
+    boxes: Vec<(DVec3, DVec3)>,
     /// Patches that are not hull faces: the only possible blockers.
     blockers: Vec<u32>,
 }
@@ -125,30 +127,29 @@ impl SemiAnalytic {
     }
 }
 
-/// Corners of patch `i` in f64.
+/// Corners of patch `i`.
 fn corners(p: &PatchSet, i: usize) -> ([DVec3; 4], usize) {
-    let (c, k) = p.corner_points(i);
-    (c.map(|q| q.as_dvec3()), k)
+    p.corner_points(i)
 }
 
 /// Signed distances of the corners of `b` from the plane of `a`, as (min, max).
-fn plane_range(p: &PatchSet, a: usize, b: usize) -> (f32, f32) {
+fn plane_range(p: &PatchSet, a: usize, b: usize) -> (f64, f64) {
     let (n, c) = (p.normal[a], p.centroid[a]);
     let (pts, k) = p.corner_points(b);
     pts[..k]
         .iter()
         .map(|&q| n.dot(q - c))
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), d| {
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), d| {
             (lo.min(d), hi.max(d))
         })
 }
 
 /// Axis-aligned bounding box of patch `i`'s corners.
-fn bounds(p: &PatchSet, i: usize) -> (Vec3, Vec3) {
+fn bounds(p: &PatchSet, i: usize) -> (DVec3, DVec3) {
     let (pts, k) = p.corner_points(i);
     pts[..k]
         .iter()
-        .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &q| {
+        .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &q| {
             (lo.min(q), hi.max(q))
         })
 }
@@ -158,7 +159,7 @@ fn fingerprint(p: &PatchSet) -> u64 {
     let mut h = 0xcbf2_9ce4_8422_2325u64 ^ p.len() as u64;
     for c in &p.centroid {
         for x in c.to_array() {
-            h = (h ^ x.to_bits() as u64).wrapping_mul(0x100_0000_01b3);
+            h = (h ^ x.to_bits()).wrapping_mul(0x100_0000_01b3);
         }
     }
     h
@@ -166,14 +167,14 @@ fn fingerprint(p: &PatchSet) -> u64 {
 
 impl Prepared {
     fn new(p: &PatchSet, key: u64) -> Prepared {
-        let tol = 1e-6 * p.diagonal as f32;
-        let boxes: Vec<(Vec3, Vec3)> = (0..p.len()).map(|k| bounds(p, k)).collect();
+        let tol = p.plane_tol();
+        let boxes: Vec<(DVec3, DVec3)> = (0..p.len()).map(|k| bounds(p, k)).collect();
         let (lo, hi) = boxes
             .iter()
-            .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(a, b), &(l, h)| {
+            .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(a, b), &(l, h)| {
                 (a.min(l), b.max(h))
             });
-        let corners: Vec<Vec3> = (0..p.len())
+        let corners: Vec<DVec3> = (0..p.len())
             .flat_map(|k| {
                 let (c, n) = p.corner_points(k);
                 c.into_iter().take(n)
@@ -221,9 +222,9 @@ impl SemiAnalytic {
         i: usize,
         j: usize,
         others: &[u32],
-        boxes: &[(Vec3, Vec3)],
+        boxes: &[(DVec3, DVec3)],
     ) -> bool {
-        let tol = 1e-6 * p.diagonal as f32;
+        let tol = p.plane_tol();
         let (lo_i, hi_i) = boxes[i];
         let (lo_j, hi_j) = boxes[j];
         let (lo, hi) = (lo_i.min(lo_j) - tol, hi_i.max(hi_j) + tol);
@@ -312,7 +313,7 @@ impl SemiAnalytic {
     ) {
         let p = ctx.patches;
         let prep = self.prepared(p);
-        let tol = 1e-6 * p.diagonal as f32;
+        let tol = p.plane_tol();
         // Possible blockers of anything leaving i: not hull faces, a corner in front of i.
         let others: Vec<u32> = prep
             .blockers
@@ -360,15 +361,15 @@ impl SemiAnalytic {
         r: usize,
         cache: Option<&mut Option<Emitter>>,
     ) -> exact::Integral {
-        let tol = 1e-6 * p.diagonal as f32;
+        let tol = p.plane_tol();
         let (cr, kr) = corners(p, r);
-        let n_e = p.normal[e].as_dvec3().normalize();
+        let n_e = p.normal[e].normalize();
         let recv = Receiver {
             poly: &cr[..kr],
-            normal: p.normal[r].as_dvec3(),
-            centroid: p.centroid[r].as_dvec3(),
+            normal: p.normal[r],
+            centroid: p.centroid[r],
         };
-        // Below this the integral is not worth chasing: rounding of the f32 geometry.
+        // Below this the integral is not worth chasing: 1e-15 of the scale of the factor.
         let floor = 1e-15 * p.area[e] * p.area[r] / (p.diagonal * p.diagonal);
         let (ce, ke) = corners(p, e);
         let whole = |ce: [DVec3; 4]| {
@@ -418,10 +419,10 @@ impl SemiAnalytic {
         let (n_e, n_r) = (p.normal[e], p.normal[r]);
         let recv = Receiver {
             poly: &cr[..kr],
-            normal: n_r.as_dvec3(),
-            centroid: p.centroid[r].as_dvec3(),
+            normal: n_r,
+            centroid: p.centroid[r],
         };
-        let n_x = n_e.as_dvec3().normalize();
+        let n_x = n_e.normalize();
         let on_r = p.sampler(r);
         let w = p.area[e] / (m * m) as f64;
         s.means.clear();
@@ -432,7 +433,7 @@ impl SemiAnalytic {
             for k in 0..s.strata.len() {
                 let (u, v) = s.strata[k];
                 let xf = p.sample_point(e, u, v);
-                let f = exact::point_factor(xf.as_dvec3(), n_x, &recv);
+                let f = exact::point_factor(xf, n_x, &recv);
                 if f <= 0.0 {
                     continue;
                 }

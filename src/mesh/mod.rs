@@ -8,6 +8,10 @@
 //!
 //! The patch triangles are also what the visibility module traces against, so a ray hit
 //! maps straight back to its patch through [`PatchSet::tri_patch`].
+//!
+//! Geometry is `f64` throughout (corners, normals, centroids, the f64 warp
+//! [`PatchSampler::point`]); `f32` appears only where rays are made for Embree
+//! ([`PatchSampler::point32`] and the visibility module).
 
 use glam::{DVec3, Vec3};
 
@@ -35,16 +39,16 @@ pub struct PatchSet {
     /// Scene name, for messages and file headers.
     pub scene: String,
     /// Vertices of the patch mesh (shared within a face).
-    pub vertices: Vec<Vec3>,
+    pub vertices: Vec<DVec3>,
     /// Corner indices into `vertices`, counter-clockwise seen from the front;
     /// the 4th is [`NONE`] for triangles.
     pub corners: Vec<[u32; 4]>,
     /// Area of each patch.
     pub area: Vec<f64>,
     /// Unit normal of each patch (the side that emits and receives).
-    pub normal: Vec<Vec3>,
+    pub normal: Vec<DVec3>,
     /// Centroid of each patch.
-    pub centroid: Vec<Vec3>,
+    pub centroid: Vec<DVec3>,
     /// Material index of each patch.
     pub material: Vec<u32>,
     /// Index of the scene face each patch came from.
@@ -57,6 +61,8 @@ pub struct PatchSet {
     pub tri_patch: Vec<u32>,
     /// Length of the diagonal of the scene's bounding box (sets ray offsets).
     pub diagonal: f64,
+    /// Largest absolute coordinate of the scene: bounds the rounding of positions.
+    pub magnitude: f64,
     /// The edge length the subdivision used.
     pub max_edge: f64,
 }
@@ -82,11 +88,21 @@ impl PatchSet {
         self.materials[self.material[i] as usize].emit
     }
 
+    /// Tolerance of the geometric predicates (is a point on, in front of or behind a
+    /// plane), in scene units: `1e-9` of the scene's diagonal, and never below a bound of
+    /// the f64 rounding of plane distances at the scene's coordinates (`2^-40` of the
+    /// largest one, about 4000 ulp). Relative to the scene, so that a scene and any
+    /// scaling or rigid motion of it take the same decisions: real separations are many
+    /// orders above it, coplanar points many orders below.
+    pub fn plane_tol(&self) -> f64 {
+        (1e-9 * self.diagonal).max(self.magnitude * f64::EPSILON * 4096.0)
+    }
+
     /// Corner positions of patch `i` (3 or 4).
-    pub fn corner_points(&self, i: usize) -> ([Vec3; 4], usize) {
+    pub fn corner_points(&self, i: usize) -> ([DVec3; 4], usize) {
         let c = self.corners[i];
         let n = if c[3] == NONE { 3 } else { 4 };
-        let mut p = [Vec3::ZERO; 4];
+        let mut p = [DVec3::ZERO; 4];
         for k in 0..n {
             p[k] = self.vertices[c[k] as usize];
         }
@@ -99,7 +115,7 @@ impl PatchSet {
     /// their two triangles with probability proportional to its area (on `u`).
     /// For many points on one patch, [`PatchSet::sampler`] does the per-patch work once.
     #[inline]
-    pub fn sample_point(&self, i: usize, u: f64, v: f64) -> Vec3 {
+    pub fn sample_point(&self, i: usize, u: f64, v: f64) -> DVec3 {
         self.sampler(i).point(u, v)
     }
 
@@ -114,7 +130,8 @@ impl PatchSet {
     /// Builds the patches of `scene` at the given resolution.
     pub fn build(scene: &Scene, res: Resolution) -> Result<PatchSet> {
         let (lo, hi) = scene.bounds();
-        let diagonal = (hi - lo).as_dvec3().length();
+        let diagonal = (hi - lo).length();
+        let magnitude = lo.abs().max(hi.abs()).max_element();
         if diagonal.is_nan() || diagonal <= 0.0 || !diagonal.is_finite() {
             return Err(Error::Scene {
                 scene: scene.source.clone(),
@@ -137,6 +154,7 @@ impl PatchSet {
             scene: scene.name.clone(),
             materials: scene.materials.clone(),
             diagonal,
+            magnitude,
             max_edge,
             ..Default::default()
         };
@@ -153,7 +171,7 @@ impl PatchSet {
         let p: Vec<DVec3> = face
             .corner_slice()
             .iter()
-            .map(|&c| scene.positions[c as usize].as_dvec3())
+            .map(|&c| scene.positions[c as usize])
             .collect();
         let base = self.vertices.len() as u32;
         if p.len() == 4 {
@@ -167,7 +185,7 @@ impl PatchSet {
                         + p[1] * (s * (1.0 - t))
                         + p[2] * (s * t)
                         + p[3] * ((1.0 - s) * t);
-                    self.vertices.push(q.as_vec3());
+                    self.vertices.push(q);
                 }
             }
             let at = |a: usize, b: usize| base + (b * (nu + 1) + a) as u32;
@@ -189,7 +207,7 @@ impl PatchSet {
                     let q = p[0]
                         + (p[1] - p[0]) * (a as f64 / n as f64)
                         + (p[2] - p[0]) * (r as f64 / n as f64);
-                    self.vertices.push(q.as_vec3());
+                    self.vertices.push(q);
                 }
             }
             for r in 0..n {
@@ -208,10 +226,7 @@ impl PatchSet {
 
     fn push_patch(&mut self, c: [u32; 4], material: u32, face: u32) {
         let n = if c[3] == NONE { 3 } else { 4 };
-        let pts: Vec<DVec3> = c[..n]
-            .iter()
-            .map(|&k| self.vertices[k as usize].as_dvec3())
-            .collect();
+        let pts: Vec<DVec3> = c[..n].iter().map(|&k| self.vertices[k as usize]).collect();
         let mut newell = DVec3::ZERO;
         let mut centroid = DVec3::ZERO;
         let mut area_sum = 0.0;
@@ -225,9 +240,9 @@ impl PatchSet {
         let id = self.area.len() as u32;
         self.corners.push(c);
         self.area.push(newell.length() * 0.5);
-        self.normal.push(newell.normalize_or_zero().as_vec3());
+        self.normal.push(newell.normalize_or_zero());
         self.centroid
-            .push((centroid / area_sum.max(f64::MIN_POSITIVE)).as_vec3());
+            .push(centroid / area_sum.max(f64::MIN_POSITIVE));
         self.material.push(material);
         self.face.push(face);
         self.triangles.push([c[0], c[1], c[2]]);
@@ -273,14 +288,15 @@ enum Warp {
 /// Uniform points on one patch (see [`PatchSet::sample_point`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PatchSampler {
-    p: [Vec3; 4],
+    p: [DVec3; 4],
     kind: Warp,
     /// Set-up of [`PatchSampler::point32`]: the first corner, the edge vectors `e1`, `e2` of
     /// the first triangle (`a + sqrt(u) e1 + sqrt(u) v e2`) or of the parallelogram
     /// (`a + u e1 + v e2`), for a general quad the differences between the second
     /// triangle's edges and the first's, the split `w` of `u` between the two triangles, and
     /// the scale that maps the first part of `u` back to [0, 1] with its difference from the
-    /// second part's.
+    /// second part's (all in f32, rounded from f64).
+    a: Vec3,
     e: [Vec3; 4],
     w: f32,
     scale: f32,
@@ -290,7 +306,7 @@ pub struct PatchSampler {
 impl PatchSampler {
     /// The sampler of a patch with these corners (`n` = 3 or 4 of them, as
     /// [`PatchSet::corner_points`] returns them).
-    pub fn of_corners(p: [Vec3; 4], n: usize) -> PatchSampler {
+    pub fn of_corners(p: [DVec3; 4], n: usize) -> PatchSampler {
         if n == 3 {
             return PatchSampler::new(p, Warp::Triangle);
         }
@@ -298,15 +314,15 @@ impl PatchSampler {
         if skew.length_squared() <= 1e-12 * (p[2] - p[0]).length_squared() {
             return PatchSampler::new(p, Warp::Parallelogram);
         }
-        let a1 = (p[1] - p[0]).cross(p[2] - p[0]).length() as f64;
-        let a2 = (p[2] - p[0]).cross(p[3] - p[0]).length() as f64;
+        let a1 = (p[1] - p[0]).cross(p[2] - p[0]).length();
+        let a2 = (p[2] - p[0]).cross(p[3] - p[0]).length();
         PatchSampler::new(p, Warp::TwoTriangles(a1 / (a1 + a2)))
     }
 
-    fn new(p: [Vec3; 4], kind: Warp) -> PatchSampler {
+    fn new(p: [DVec3; 4], kind: Warp) -> PatchSampler {
         let (e, w) = match kind {
-            Warp::Triangle => ([p[1] - p[0], p[2] - p[1], Vec3::ZERO, Vec3::ZERO], 1.0),
-            Warp::Parallelogram => ([p[1] - p[0], p[3] - p[0], Vec3::ZERO, Vec3::ZERO], 1.0),
+            Warp::Triangle => ([p[1] - p[0], p[2] - p[1], DVec3::ZERO, DVec3::ZERO], 1.0),
+            Warp::Parallelogram => ([p[1] - p[0], p[3] - p[0], DVec3::ZERO, DVec3::ZERO], 1.0),
             Warp::TwoTriangles(w) => (
                 // The second triangle's edges as differences from the first's.
                 [
@@ -321,7 +337,8 @@ impl PatchSampler {
         PatchSampler {
             p,
             kind,
-            e,
+            a: p[0].as_vec3(),
+            e: e.map(|v| v.as_vec3()),
             w,
             scale: 1.0 / w,
             dscale: if w < 1.0 {
@@ -334,14 +351,11 @@ impl PatchSampler {
 
     /// The point of `(u, v)` in the unit square.
     #[inline]
-    pub fn point(&self, u: f64, v: f64) -> Vec3 {
+    pub fn point(&self, u: f64, v: f64) -> DVec3 {
         let p = &self.p;
         match self.kind {
             Warp::Triangle => sample_triangle(p[0], p[1], p[2], u, v),
-            Warp::Parallelogram => {
-                let (u, v) = (u as f32, v as f32);
-                p[0] + (p[1] - p[0]) * u + (p[3] - p[0]) * v
-            }
+            Warp::Parallelogram => p[0] + (p[1] - p[0]) * u + (p[3] - p[0]) * v,
             Warp::TwoTriangles(w) => {
                 if u < w {
                     sample_triangle(p[0], p[1], p[2], u / w, v)
@@ -357,7 +371,7 @@ impl PatchSampler {
     /// of the area estimators.
     #[inline(always)]
     pub fn point32(&self, u: f32, v: f32) -> Vec3 {
-        let (a, e) = (self.p[0], &self.e);
+        let (a, e) = (self.a, &self.e);
         match self.kind {
             Warp::Parallelogram => a + e[0] * u + e[1] * v,
             Warp::Triangle => {
@@ -386,7 +400,7 @@ impl PatchSampler {
         let v = &v[..len];
         let [x, y, z] = out;
         let (x, y, z) = (&mut x[..len], &mut y[..len], &mut z[..len]);
-        let (a, e) = (self.p[0], self.e);
+        let (a, e) = (self.a, self.e);
         match self.kind {
             Warp::Parallelogram => {
                 for k in 0..len {
@@ -422,9 +436,9 @@ impl PatchSampler {
 
 /// Uniform point on triangle (a, b, c) from (u, v) in the unit square.
 #[inline]
-fn sample_triangle(a: Vec3, b: Vec3, c: Vec3, u: f64, v: f64) -> Vec3 {
+fn sample_triangle(a: DVec3, b: DVec3, c: DVec3, u: f64, v: f64) -> DVec3 {
     let su = u.sqrt();
-    let (b0, b1) = ((1.0 - su) as f32, (v * su) as f32);
+    let (b0, b1) = (1.0 - su, v * su);
     a * b0 + b * (1.0 - b0 - b1) + c * b1
 }
 
@@ -438,7 +452,7 @@ fn edge_for_count(scene: &Scene, n: usize) -> f64 {
                 let p: Vec<DVec3> = f
                     .corner_slice()
                     .iter()
-                    .map(|&c| scene.positions[c as usize].as_dvec3())
+                    .map(|&c| scene.positions[c as usize])
                     .collect();
                 if p.len() == 4 {
                     cells(p[1] - p[0], h).max(cells(p[2] - p[3], h))
@@ -454,7 +468,7 @@ fn edge_for_count(scene: &Scene, n: usize) -> f64 {
     };
     // The count falls as h grows: bisect on log h between "one patch per face" and tiny.
     let (lo0, hi0) = scene.bounds();
-    let mut hi = (hi0 - lo0).as_dvec3().length() * 2.0;
+    let mut hi = (hi0 - lo0).length() * 2.0;
     let mut lo = hi * 1e-5;
     for _ in 0..60 {
         let mid = (lo * hi).sqrt();
@@ -503,7 +517,7 @@ mod tests {
                 let mut out = [vec![0.0; 5], vec![0.0; 5], vec![0.0; 5]];
                 s.points32(&us, &vs, &mut out);
                 for (k, &(u, v)) in uv.iter().enumerate() {
-                    let (a, b) = (s.point(u as f64, v as f64), s.point32(u, v));
+                    let (a, b) = (s.point(u as f64, v as f64).as_vec3(), s.point32(u, v));
                     let c = Vec3::new(out[0][k], out[1][k], out[2][k]);
                     assert!(
                         (a - b).length() <= 1e-6 * scale,

@@ -644,8 +644,8 @@ mod tests {
         let b: Vec<[f64; 3]> = (0..set.len())
             .map(|i| {
                 let (r, e) = (set.rho(i), set.emit(i));
-                let d = set.centroid[i].distance(Vec3::new(278.0, 548.8, 279.5)) / 400.0;
-                let f = f64::from(1.0 / (1.0 + d * d));
+                let d = set.centroid[i].distance(glam::DVec3::new(278.0, 548.8, 279.5)) / 400.0;
+                let f = 1.0 / (1.0 + d * d);
                 [r[0] * f + e[0], r[1] * f + e[1], r[2] * f + e[2]]
             })
             .collect();

@@ -103,7 +103,9 @@ pub fn interpolate(patches: &PatchSet, b: &[[f64; 3]], crease_deg: f32) -> Verte
         patches.len()
     );
     let tol = WELD_RELATIVE * patches.diagonal;
-    let weld = weld_positions(&patches.vertices, tol as f32);
+    // Output positions are f32 (the files' type): welded as they will be written.
+    let v32: Vec<Vec3> = patches.vertices.iter().map(|v| v.as_vec3()).collect();
+    let weld = weld_positions(&v32, tol as f32);
     let cos_crease = crease_cosine(crease_deg);
 
     // Incidence lists (CSR): for each welded position, the sorted distinct patches whose
@@ -210,7 +212,7 @@ pub fn interpolate(patches: &PatchSet, b: &[[f64; 3]], crease_deg: f32) -> Verte
                 0.0
             };
             let bp = DVec3::from_array(b[p]);
-            let np = patches.normal[p].as_dvec3();
+            let np = patches.normal[p];
             sum_b[id] += bp * w;
             sum_n[id] += np * w;
             sum_w[id] += w;
@@ -219,10 +221,7 @@ pub fn interpolate(patches: &PatchSet, b: &[[f64; 3]], crease_deg: f32) -> Verte
             count[id] += 1;
         }
     }
-    out.positions = root_of_out
-        .iter()
-        .map(|&r| patches.vertices[r as usize])
-        .collect();
+    out.positions = root_of_out.iter().map(|&r| v32[r as usize]).collect();
     out.rgb = Vec::with_capacity(n_out);
     out.normals = Vec::with_capacity(n_out);
     for id in 0..n_out {
@@ -251,10 +250,7 @@ fn crease_cosine(crease_deg: f32) -> f64 {
 /// Same material and normals within the crease angle.
 fn compatible(patches: &PatchSet, i: usize, j: usize, cos_crease: f64) -> bool {
     patches.material[i] == patches.material[j]
-        && patches.normal[i]
-            .as_dvec3()
-            .dot(patches.normal[j].as_dvec3())
-            >= cos_crease
+        && patches.normal[i].dot(patches.normal[j]) >= cos_crease
 }
 
 /// Union-find root with path halving.
@@ -334,11 +330,12 @@ pub(crate) mod testing {
     /// Adds a planar quad face `p` (corners counter-clockwise seen from the front) split
     /// into `n x n` patches with their own vertices, as `PatchSet::build` does.
     pub fn add_quad(set: &mut PatchSet, p: [Vec3; 4], material: u32, n: usize) {
+        let p = p.map(|q| q.as_dvec3());
         let face = set.face.last().map_or(0, |f| f + 1);
         let base = set.vertices.len() as u32;
         for b in 0..=n {
             for a in 0..=n {
-                let (s, t) = (a as f32 / n as f32, b as f32 / n as f32);
+                let (s, t) = (a as f64 / n as f64, b as f64 / n as f64);
                 let q = p[0] * ((1.0 - s) * (1.0 - t))
                     + p[1] * (s * (1.0 - t))
                     + p[2] * (s * t)
@@ -350,11 +347,11 @@ pub(crate) mod testing {
         for b in 0..n {
             for a in 0..n {
                 let c = [at(a, b), at(a + 1, b), at(a + 1, b + 1), at(a, b + 1)];
-                let q: Vec<Vec3> = c.iter().map(|&k| set.vertices[k as usize]).collect();
+                let q: Vec<DVec3> = c.iter().map(|&k| set.vertices[k as usize]).collect();
                 let cr = (q[1] - q[0]).cross(q[2] - q[0]) + (q[2] - q[0]).cross(q[3] - q[0]);
                 let id = set.area.len() as u32;
                 set.corners.push(c);
-                set.area.push(f64::from(cr.length()) * 0.5);
+                set.area.push(cr.length() * 0.5);
                 set.normal.push(cr.normalize());
                 set.centroid.push((q[0] + q[1] + q[2] + q[3]) / 4.0);
                 set.material.push(material);
@@ -364,12 +361,13 @@ pub(crate) mod testing {
                 set.tri_patch.extend([id, id]);
             }
         }
-        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        let (mut lo, mut hi) = (DVec3::INFINITY, DVec3::NEG_INFINITY);
         for &v in &set.vertices {
             lo = lo.min(v);
             hi = hi.max(v);
         }
-        set.diagonal = f64::from((hi - lo).length());
+        set.diagonal = (hi - lo).length();
+        set.magnitude = lo.abs().max(hi.abs()).max_element();
     }
 
     /// An empty patch set with `k` grey materials.
@@ -544,8 +542,8 @@ mod tests {
             0,
             2,
         );
-        assert!(set.normal[0].distance(Vec3::Y) < 1e-6);
-        assert!(set.normal[set.len() - 1].distance(Vec3::X) < 1e-6);
+        assert!(set.normal[0].distance(DVec3::Y) < 1e-6);
+        assert!(set.normal[set.len() - 1].distance(DVec3::X) < 1e-6);
         let b: Vec<[f64; 3]> = (0..set.len())
             .map(|i| if set.face[i] == 0 { [1.0; 3] } else { [3.0; 3] })
             .collect();

@@ -9,7 +9,7 @@
 pub mod builtin;
 pub mod obj;
 
-use glam::Vec3;
+use glam::{DVec3, Vec3};
 
 use crate::error::{Error, Result};
 
@@ -129,8 +129,9 @@ pub struct Scene {
     pub name: String,
     /// Where it came from: `builtin:NAME` or the file path.
     pub source: String,
-    /// Vertex positions.
-    pub positions: Vec<Vec3>,
+    /// Vertex positions (f64: geometry stays exact as loaded; f32 only at the Embree
+    /// boundary and in the output files).
+    pub positions: Vec<DVec3>,
     /// Planar convex polygons.
     pub faces: Vec<Face>,
     /// Materials referenced by the faces.
@@ -143,9 +144,9 @@ pub struct Scene {
 
 impl Scene {
     /// Axis-aligned bounds of the positions used by faces.
-    pub fn bounds(&self) -> (Vec3, Vec3) {
-        let mut lo = Vec3::splat(f32::INFINITY);
-        let mut hi = Vec3::splat(f32::NEG_INFINITY);
+    pub fn bounds(&self) -> (DVec3, DVec3) {
+        let mut lo = DVec3::splat(f64::INFINITY);
+        let mut hi = DVec3::splat(f64::NEG_INFINITY);
         for f in &self.faces {
             for &c in f.corner_slice() {
                 let p = self.positions[c as usize];
@@ -160,7 +161,7 @@ impl Scene {
     pub fn camera_or_framing(&self) -> Camera {
         self.camera.unwrap_or_else(|| {
             let (lo, hi) = self.bounds();
-            Camera::framing(lo, hi)
+            Camera::framing(lo.as_vec3(), hi.as_vec3())
         })
     }
 

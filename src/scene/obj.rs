@@ -103,7 +103,7 @@ pub fn parse(
         scene.positions.extend(
             mesh.positions
                 .chunks_exact(3)
-                .map(|p| Vec3::new(p[0], p[1], p[2])),
+                .map(|p| DVec3::new(p[0], p[1], p[2])),
         );
         let material = match mesh.material_id {
             Some(k) => k as u32,
@@ -419,7 +419,7 @@ fn add_polygon(scene: &mut Scene, idx: &[u32], material: u32, line: usize) {
     }
     let pts: Vec<DVec3> = corners
         .iter()
-        .map(|&i| scene.positions[i as usize].as_dvec3())
+        .map(|&i| scene.positions[i as usize])
         .collect();
     let scale = pts
         .iter()

@@ -20,7 +20,7 @@
 //! The unit tests check both against an independent Gauss–Legendre integration of the
 //! exact point-to-polygon factor.
 
-use glam::Vec3;
+use glam::DVec3;
 
 use crate::analytic::{parallel_rectangles, perpendicular_rectangles};
 use crate::scene::{Face, Material, Scene};
@@ -92,7 +92,7 @@ pub fn perpendicular_offset(w: f64, h: f64, a: [f64; 2], b: [f64; 2]) -> f64 {
 
 /// A scene from quads given as `(origin, e1, e2)`: corners `o, o+e1, o+e1+e2, o+e2`, front
 /// side along `e1 x e2`.
-fn scene(name: &str, quads: &[(Vec3, Vec3, Vec3)]) -> Scene {
+fn scene(name: &str, quads: &[(DVec3, DVec3, DVec3)]) -> Scene {
     let mut positions = Vec::new();
     let mut faces = Vec::new();
     for &(o, e1, e2) in quads {
@@ -119,8 +119,8 @@ fn scene(name: &str, quads: &[(Vec3, Vec3, Vec3)]) -> Scene {
     }
 }
 
-fn v(x: f64, y: f64, z: f64) -> Vec3 {
-    Vec3::new(x as f32, y as f32, z as f32)
+fn v(x: f64, y: f64, z: f64) -> DVec3 {
+    DVec3::new(x, y, z)
 }
 
 /// Length of the shelf of [`all`] (in widths) and the slice studied.
@@ -249,7 +249,6 @@ mod tests {
     use super::*;
     use crate::analytic::{gauss_legendre, point_to_polygon, shelf_factors};
     use crate::mesh::{PatchSet, Resolution};
-    use glam::DVec3;
 
     /// `F_ij` by a tensor Gauss rule of the exact point-to-polygon factor over face i.
     fn quadrature(s: &Scene, i: usize, j: usize, order: usize) -> f64 {
@@ -257,7 +256,7 @@ mod tests {
             s.faces[f]
                 .corner_slice()
                 .iter()
-                .map(|&k| s.positions[k as usize].as_dvec3())
+                .map(|&k| s.positions[k as usize])
                 .collect()
         };
         let (a, b) = (c(i), c(j));

@@ -1,18 +1,27 @@
 //! Visibility queries between points of the scene, hiding the ray tracer behind them.
 //!
 //! Estimators ask two questions: is the segment between two surface points free
-//! ([`Visibility::segment_visible`]), and what does a ray from a surface point hit first
-//! ([`Visibility::first_hit`]). The offset policy for both lives here, in one place:
-//! each end of a segment is moved off its surface along its own normal, toward the side
-//! the ray leaves or arrives from, by `eps` = 1e-5 of the scene diagonal, and the ray stops
-//! short of the far end (pbrt-v4 `SpawnRayTo`; Embree does not promise what happens for
-//! hits exactly at `tnear`/`tfar`). Because both ends sit on the front side of their
-//! patches, a segment never hits its own patches, and a point in a corner cannot leak
-//! through the wall it touches.
+//! ([`Visibility::segments_visible`], [`Visibility::segments_visible_soa`]), and what does
+//! a ray from a surface point hit first ([`Visibility::first_hit`],
+//! [`Visibility::first_front_hits_soa`]).
+//!
+//! Geometry arrives in `f64`; this module is where it becomes `f32` for Embree (the
+//! vertex buffer, ray origins and directions). The offset policy lives here, in one place
+//! ([`Offsets`]): each end of a segment is moved off its surface along its own normal,
+//! toward the side the ray leaves or arrives from, by `eps` = 1e-5 of the scene diagonal,
+//! but never by more than a quarter of the far end's distance from the near end's plane
+//! (so that two surfaces closer than `eps` keep both ends between them) nor less than
+//! `floor`, a few `f32` rounding units at the scene's largest coordinate (so that an end
+//! rounded to `f32` stays off its surface); and the ray stops short of the far end (pbrt-v4
+//! `SpawnRayTo`; Embree does not promise what happens for hits exactly at
+//! `tnear`/`tfar`). Because both ends sit on the front side of their patches, a segment
+//! never hits its own patches, and a point in a corner cannot leak through the wall it
+//! touches. Both bounds scale with the scene, so a scaled copy casts the same rays, scaled.
+//! Closest-hit rays leave from `eps` off their surface.
 
 mod embree;
 
-use glam::Vec3;
+use glam::{DVec3, Vec3};
 
 use crate::error::Result;
 use crate::mesh::PatchSet;
@@ -21,6 +30,41 @@ pub use embree::{flush_denormals, EmbreeScene, HitPacket16};
 
 /// Relative offset of ray ends from their surfaces, as a fraction of the scene diagonal.
 pub const OFFSET_REL: f32 = 1e-5;
+
+/// `tfar` of a segment ray: it stops this fraction of its length short of the far end.
+pub const SEGMENT_TFAR: f32 = 1.0 - 1e-4;
+
+/// The ray-offset policy of the module docs, for a scene.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Offsets {
+    /// Offset of ray ends off their surfaces (scene units): `OFFSET_REL` of the diagonal.
+    pub eps: f32,
+    /// Least offset: 2 `f32` ulps of the largest coordinate of the scene.
+    pub floor: f32,
+}
+
+impl Offsets {
+    /// The offsets for `patches`.
+    pub fn of(patches: &PatchSet) -> Offsets {
+        let floor = (2.0 * f64::from(f32::EPSILON) * patches.magnitude) as f32;
+        let eps = (patches.diagonal as f32 * OFFSET_REL).max(floor);
+        Offsets {
+            eps: eps.max(f32::MIN_POSITIVE),
+            floor: floor.max(f32::MIN_POSITIVE),
+        }
+    }
+
+    /// Offsets `(along n_x, along n_y)` of the two ends of the segment from `x` to `y`,
+    /// given `cos_x = |n_x · (y - x)|` and `cos_y = |n_y · (y - x)|` (unnormalised: the
+    /// distances of each end from the other's plane).
+    #[inline(always)]
+    pub fn ends(&self, cos_x: f32, cos_y: f32) -> (f32, f32) {
+        (
+            (0.25 * cos_y).min(self.eps).max(self.floor),
+            (0.25 * cos_x).min(self.eps).max(self.floor),
+        )
+    }
+}
 
 /// A segment ray `(origin, direction, tfar)` with tnear = 0, as made by
 /// [`Visibility::segment_ray`].
@@ -106,7 +150,7 @@ impl Segments<'_> {
 /// A ray `(origin, unit direction)` for closest-hit queries.
 pub type Ray = (Vec3, Vec3);
 
-/// The patch id [`Visibility::first_hits_from`] reports for a ray that hits nothing.
+/// The patch id [`Visibility::first_front_hits_soa`] reports for a ray that hits nothing.
 pub const NO_HIT: u32 = u32::MAX;
 
 /// What a ray hit first.
@@ -125,7 +169,7 @@ pub struct Visibility {
     /// Patch of each triangle, with bit 31 set when the triangle's winding normal points
     /// to the patch's front side ([`Visibility::first_front_hits_soa`]).
     tri_front: Vec<u32>,
-    eps: f32,
+    offsets: Offsets,
 }
 
 /// Bit of [`Visibility`]'s `tri_front` entries: winding normal along the patch normal.
@@ -134,8 +178,8 @@ const ALONG: u32 = 1 << 31;
 impl Visibility {
     /// Builds the acceleration structure over the patches' triangles.
     pub fn new(patches: &PatchSet) -> Result<Visibility> {
-        let scene = EmbreeScene::new(&patches.vertices, &patches.triangles)?;
-        let eps = (patches.diagonal as f32 * OFFSET_REL).max(f32::MIN_POSITIVE);
+        let v32: Vec<Vec3> = patches.vertices.iter().map(|v| v.as_vec3()).collect();
+        let scene = EmbreeScene::new(&v32, &patches.triangles)?;
         let v = &patches.vertices;
         let tri_front = patches
             .triangles
@@ -151,13 +195,19 @@ impl Visibility {
             scene,
             tri_patch: patches.tri_patch.clone(),
             tri_front,
-            eps,
+            offsets: Offsets::of(patches),
         })
     }
 
-    /// The offset used for ray ends.
+    /// The offset used for ray ends (closest-hit origins, and segment ends far enough
+    /// from the other end's plane).
     pub fn eps(&self) -> f32 {
-        self.eps
+        self.offsets.eps
+    }
+
+    /// The ray-offset policy ([`Offsets`]).
+    pub fn offsets(&self) -> Offsets {
+        self.offsets
     }
 
     /// The underlying Embree scene (for benchmarks of raw queries).
@@ -165,24 +215,20 @@ impl Visibility {
         &self.scene
     }
 
-    /// The segment from `x` (on a surface with normal `n_x`) to `y` (normal `n_y`), both
-    /// ends offset by `eps` off their surfaces toward the other end, as a ray:
-    /// `(origin, direction, tfar)` with tnear = 0. Direction is not normalised.
+    /// The segment from `x` (on a surface with unit normal `n_x`) to `y` (normal `n_y`),
+    /// both ends offset off their surfaces toward the other end by the [`Offsets`]
+    /// policy, as an `f32` ray: `(origin, direction, tfar)` with tnear = 0. Computed in
+    /// f64, rounded once. Direction is not normalised.
     #[inline]
-    pub fn segment_ray(&self, x: Vec3, n_x: Vec3, y: Vec3, n_y: Vec3) -> (Vec3, Vec3, f32) {
+    pub fn segment_ray(&self, x: DVec3, n_x: DVec3, y: DVec3, n_y: DVec3) -> SegmentRay {
         let d = y - x;
-        let ox = if n_x.dot(d) >= 0.0 { n_x } else { -n_x };
-        let oy = if n_y.dot(d) <= 0.0 { n_y } else { -n_y };
-        let org = x + ox * self.eps;
-        let end = y + oy * self.eps;
-        (org, end - org, 1.0 - 1e-4)
-    }
-
-    /// True when nothing blocks the segment between `x` and `y` (see the module docs).
-    #[inline]
-    pub fn segment_visible(&self, x: Vec3, n_x: Vec3, y: Vec3, n_y: Vec3) -> bool {
-        let (org, dir, tfar) = self.segment_ray(x, n_x, y, n_y);
-        !self.scene.occluded1(org, dir, 0.0, tfar)
+        let (cx, cy) = (n_x.dot(d), n_y.dot(d));
+        let ox = if cx >= 0.0 { n_x } else { -n_x };
+        let oy = if cy <= 0.0 { n_y } else { -n_y };
+        let (dx, dy) = self.offsets.ends(cx.abs() as f32, cy.abs() as f32);
+        let org = x + ox * f64::from(dx);
+        let end = y + oy * f64::from(dy);
+        (org.as_vec3(), (end - org).as_vec3(), SEGMENT_TFAR)
     }
 
     /// Visibility of up to 16 segments at once, with Embree's packet query.
@@ -234,34 +280,11 @@ impl Visibility {
     }
 
     /// The ray [`Visibility::first_hit`] casts from `x` (normal `n_x`) in unit direction
-    /// `dir`: its origin, offset off the surface toward `dir`.
+    /// `dir`: its origin, offset off the surface toward `dir` by `eps`, rounded to f32.
     #[inline]
-    pub fn first_hit_origin(&self, x: Vec3, n_x: Vec3, dir: Vec3) -> Vec3 {
+    pub fn first_hit_origin(&self, x: DVec3, n_x: DVec3, dir: DVec3) -> Vec3 {
         let off = if n_x.dot(dir) >= 0.0 { n_x } else { -n_x };
-        x + off * self.eps
-    }
-
-    /// First patch hit by the ray from `org` (already offset) in unit direction `dir`.
-    #[inline]
-    pub fn first_hit_from(&self, org: Vec3, dir: Vec3) -> Option<Hit> {
-        self.scene
-            .intersect1(org, dir, 0.0, f32::INFINITY)
-            .map(|h| Hit {
-                patch: self.tri_patch[h.prim as usize],
-                t: h.t,
-            })
-    }
-
-    /// The patch each ray `(origin, unit direction)` hits first ([`Visibility::first_hit_from`]
-    /// in a loop), or [`NO_HIT`], into `out`.
-    #[inline]
-    pub fn first_hits_from(&self, rays: &[Ray], out: &mut [u32]) {
-        for (o, r) in out.iter_mut().zip(rays) {
-            *o = match self.scene.intersect1(r.0, r.1, 0.0, f32::INFINITY) {
-                Some(h) => self.tri_patch[h.prim as usize],
-                None => NO_HIT,
-            };
-        }
+        (x + off * f64::from(self.offsets.eps)).as_vec3()
     }
 
     /// The patch whose front side each ray meets first, for rays given as structure of
@@ -301,7 +324,13 @@ impl Visibility {
 
     /// First patch hit by the ray leaving `x` (normal `n_x`) in unit direction `dir`.
     #[inline]
-    pub fn first_hit(&self, x: Vec3, n_x: Vec3, dir: Vec3) -> Option<Hit> {
-        self.first_hit_from(self.first_hit_origin(x, n_x, dir), dir)
+    pub fn first_hit(&self, x: DVec3, n_x: DVec3, dir: DVec3) -> Option<Hit> {
+        let org = self.first_hit_origin(x, n_x, dir);
+        self.scene
+            .intersect1(org, dir.as_vec3(), 0.0, f32::INFINITY)
+            .map(|h| Hit {
+                patch: self.tri_patch[h.prim as usize],
+                t: h.t,
+            })
     }
 }
