@@ -437,11 +437,11 @@ fn bake(args: &BakeArgs) -> Result<()> {
 
 fn study_solvers(args: &StudySolversArgs) -> Result<()> {
     let settings = if args.quick {
-        radiosity::solve::study::Settings::quick(args.output.clone())
+        radiosity::study::solvers::Settings::quick(args.output.clone())
     } else {
-        radiosity::solve::study::Settings::full(args.output.clone())
+        radiosity::study::solvers::Settings::full(args.output.clone())
     };
-    let report = radiosity::solve::study::run(&settings)?;
+    let report = radiosity::study::solvers::run(&settings)?;
     for r in &report.runs {
         println!(
             "{:<16} {:<13} {:>8} iterations {:>9.3}s residual {:.2e} {}",

@@ -11,7 +11,25 @@
 use rayon::prelude::*;
 use sprs::{CsMat, TriMat};
 
-use crate::formfactor::Entry;
+/// One estimated entry of a row: `F_ij` and its standard error.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Entry {
+    /// Column (receiving patch).
+    pub j: u32,
+    /// Estimated form factor.
+    pub f: f64,
+    /// Standard error of the estimate (0 when exact).
+    pub se: f64,
+}
+
+/// A row being computed, reused between rows on the same thread.
+#[derive(Clone, Debug, Default)]
+pub struct Row {
+    /// Non-zero entries (any order).
+    pub entries: Vec<Entry>,
+    /// Rays cast for this row.
+    pub rays: u64,
+}
 
 /// What [`repair_row_sums`] changed.
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -288,7 +288,7 @@ fn closure(ff: &mut FormFactors, sigma: &[f64], update_se: bool) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::formfactor::Entry;
+    use crate::matrix::Entry;
 
     fn matrix(rows: Vec<Vec<(u32, f64, f64)>>, area: Vec<f64>) -> FormFactors {
         let rows = rows

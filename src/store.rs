@@ -284,7 +284,7 @@ pub fn read(dir: &Path, patches: &PatchSet) -> Result<FormFactors> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::formfactor::Entry;
+    use crate::matrix::Entry;
 
     #[test]
     fn matrix_market_text_does_not_depend_on_the_pieces() {

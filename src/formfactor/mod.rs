@@ -24,6 +24,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use crate::matrix::{sort_row, CsrBuilder, FormFactors};
+pub use crate::matrix::{Entry, Row};
 use crate::mesh::PatchSet;
 use crate::visibility::Visibility;
 
@@ -40,26 +41,6 @@ pub struct Context<'a> {
     pub vis: &'a Visibility,
     /// Seed of all random streams.
     pub seed: u64,
-}
-
-/// One estimated entry of a row: `F_ij` and its standard error.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Entry {
-    /// Column (receiving patch).
-    pub j: u32,
-    /// Estimated form factor.
-    pub f: f64,
-    /// Standard error of the estimate (0 when exact).
-    pub se: f64,
-}
-
-/// A row being computed, reused between rows on the same thread.
-#[derive(Clone, Debug, Default)]
-pub struct Row {
-    /// Non-zero entries (any order).
-    pub entries: Vec<Entry>,
-    /// Rays cast for this row.
-    pub rays: u64,
 }
 
 /// A way of estimating one row of the form-factor matrix.

@@ -84,7 +84,6 @@ pub mod direct;
 pub mod gauss_seidel;
 pub mod jacobi;
 pub mod progressive;
-pub mod study;
 
 pub use cg::Cg;
 pub use direct::{Direct, DIRECT_MAX_PATCHES};

@@ -12,8 +12,12 @@
 //! Runs are independent tasks spread over rayon's pool; each task is keyed on its seed,
 //! so the numbers (but not the times) are the same on any thread count. The hemicube has
 //! no randomness: its seeds repeat the same number.
+//!
+//! The solver study ([`solvers`], `radiosity study-solvers`) lives here too: both studies
+//! drive the pipeline and write files, so they sit downstream of every stage.
 
 pub mod configs;
+pub mod solvers;
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};

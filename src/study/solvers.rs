@@ -1,7 +1,9 @@
 //! The solver study (`radiosity study-solvers`): residual against iterations and against
 //! time for every solver, on the closed cube (`rho` = 0.5, 0.9, 0.99, 0.999, every face
-//! emitting, and again lit by its ceiling only) and on the Cornell box; CSV files and SVG/PNG charts. Unlike the solvers, this
-//! driver does I/O: it is the one place in [`crate::solve`] that writes files.
+//! emitting, and again lit by its ceiling only) and on the Cornell box; CSV files and SVG/PNG
+//! charts. It lives beside the estimator study, outside [`crate::solve`], so that the
+//! solvers depend on nothing downstream (the study drives the whole pipeline and writes
+//! files).
 //!
 //! What is plotted, so that the methods are comparable (Cohen and Wallace 1993, §5.3, compare
 //! them the same way):
@@ -9,9 +11,9 @@
 //!   CG iteration two (one over the symmetrised matrix, one for the exact residual) and is
 //!   counted as 2, and `n` shots of progressive refinement read `n` columns, one pass: shots
 //!   are divided by `n`. The direct solve is one point at its factorisation.
-//! - y = the relative residual of the original system (see the [module docs](super)); for
+//! - y = the relative residual of the original system (see the [`crate::solve`] docs); for
 //!   progressive refinement the recorded history is its cheap upper bound (see
-//!   [`Progressive`](super::Progressive)) and the final point is exact.
+//!   [`Progressive`](crate::solve::Progressive)) and the final point is exact.
 //! - time: each run's wall-clock time spread evenly over its iterations (the solvers record
 //!   one total time, and their iterations cost the same).
 //!
@@ -23,12 +25,12 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use super::{Method, Options};
 use crate::error::{Error, Result};
 use crate::mesh::{PatchSet, Resolution};
 use crate::output::chart::{line_chart, Series};
 use crate::pipeline::{self, EstimatorChoice, Quiet};
 use crate::scene::Scene;
+use crate::solve::{Method, Options};
 
 /// What to run.
 #[derive(Clone, Debug)]
