@@ -57,7 +57,7 @@ impl Piece {
     /// Point and area Jacobian at `(u, v)`; `um = 1 - u` and `vm = 1 - v` are passed in so
     /// that nodes next to `u = 1` or `v = 1` keep their full precision.
     #[inline]
-    fn at(&self, u: f64, um: f64, v: f64, vm: f64) -> (DVec3, f64) {
+    pub fn at(&self, u: f64, um: f64, v: f64, vm: f64) -> (DVec3, f64) {
         match self {
             Piece::Quad(c) => {
                 let x = c[0] * (um * vm) + c[1] * (u * vm) + c[2] * (u * v) + c[3] * (um * v);
@@ -74,8 +74,10 @@ impl Piece {
         }
     }
 
-    /// The four quarters in parameter space.
-    fn split(&self) -> [Piece; 4] {
+    /// The four quarters in parameter space. Edge midpoints are computed as
+    /// `(a + b) / 2` of the edge's end points, so two pieces that share an edge split it at
+    /// the same point, bit for bit.
+    pub fn split(&self) -> [Piece; 4] {
         let mid = |a: DVec3, b: DVec3| (a + b) * 0.5;
         match *self {
             Piece::Quad(c) => {
@@ -108,15 +110,20 @@ impl Piece {
     /// Centre (image of the parameter centre) and the largest corner distance from it.
     fn ball(&self) -> (DVec3, f64) {
         let ctr = self.at(0.5, 0.5, 0.5, 0.5).0;
-        let corners: &[DVec3] = match self {
-            Piece::Quad(c) => c,
-            Piece::Tri(c) => c,
-        };
-        let r = corners
+        let r = self
+            .corners()
             .iter()
             .map(|&p| (p - ctr).length())
             .fold(0.0, f64::max);
         (ctr, r)
+    }
+
+    /// The corners (3 for a triangle, 4 for a quad), counter-clockwise as given.
+    pub fn corners(&self) -> &[DVec3] {
+        match self {
+            Piece::Quad(c) => c,
+            Piece::Tri(c) => c,
+        }
     }
 
     /// Area (by a 4 x 4 Gauss rule, exact for the bilinear and collapsed maps).

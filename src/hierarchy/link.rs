@@ -1,0 +1,361 @@
+//! Links and what the refinement oracle knows about each: the form factor between two
+//! elements, how much it varies over the receiver, and whether the pair is partly hidden.
+//!
+//! A link `r ← s` says "receiver `r` gathers the radiosity of source `s` through `F_rs`"
+//! (Hanrahan, Salzman and Aupperle, "A rapid hierarchical radiosity algorithm",
+//! SIGGRAPH 1991, section 3). Its factor is
+//!
+//! `F_rs = 1/A_r ∫_{A_r} F(x → P_s) v(x) dA_x`,
+//!
+//! with `F(x → P_s)` Lambert's exact point-to-polygon factor and `v` the visible fraction,
+//! as in the semi-analytic estimator ([`crate::formfactor::semi`]):
+//!
+//! - the unoccluded integral comes from [`crate::formfactor::exact::integrate`] to the
+//!   relative tolerance [`super::Settings::quadrature`] (deterministic, with its error
+//!   estimate);
+//! - when no other patch can block the pair ([`Blockers::unoccluded`], the hull-face and
+//!   plane tests of the semi estimator, in `f64`), `v = 1` exactly and no ray is cast;
+//! - otherwise `n x n` jittered points on the receiver are paired with `n x n` jittered
+//!   points on the source (a random permutation of the strata) and each segment is traced;
+//!   `v` is the kernel-weighted visible fraction `Σ G V / Σ G` (the Jacobians of both
+//!   parameter maps included). All rays free: *visible*; none: *hidden* (the link is
+//!   dropped); some: *partial*, a shadow boundary runs through the pair.
+//!
+//! The oracle's variation `ΔF`: Lambert's factor is evaluated at a 3 x 3 grid of points of
+//! the receiver; a visible link's `ΔF` is their range (plus the quadrature error), a
+//! partial link's is their maximum (visibility may go from 0 to 1 across the receiver).
+//! The refinement rule itself lives in [`super::refine`].
+//!
+//! Random streams are keyed on `(seed, r, s)`, and element numbering does not depend on
+//! the thread count, so neither do the links.
+
+use glam::DVec3;
+
+use super::element::Elements;
+use crate::analytic::point_to_polygon_unit;
+use crate::formfactor::exact::{self, Emitter, Receiver};
+use crate::mesh::PatchSet;
+use crate::sampling::Pcg32;
+use crate::visibility::{SegmentRay, Visibility};
+
+/// A link as stored, in the list of its receiver.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Link {
+    /// The source element.
+    pub src: u32,
+    /// Form factor `F_rs` (receiver to source).
+    pub f: f64,
+    /// Its estimated error: quadrature error plus, for partial links, the binomial
+    /// standard error of the visible fraction times the unoccluded factor.
+    pub err: f64,
+    /// Variation of the point factor over the receiver (the oracle's `ΔF`).
+    pub df: f64,
+    /// True when some but not all visibility rays were blocked.
+    pub partial: bool,
+}
+
+/// What evaluating a candidate link costs and finds.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Cost {
+    /// Rays traced.
+    pub rays: u64,
+    /// Point-to-polygon evaluations.
+    pub evals: u64,
+}
+
+impl std::ops::AddAssign for Cost {
+    fn add_assign(&mut self, o: Cost) {
+        self.rays += o.rays;
+        self.evals += o.evals;
+    }
+}
+
+/// The patches that may block a segment between two elements: every root patch that is
+/// not a *hull face* (one whose plane has the whole scene on or in front of it), with its
+/// bounding box, plane and corners.
+pub struct Blockers {
+    boxes: Vec<(DVec3, DVec3)>,
+    planes: Vec<(DVec3, DVec3)>,
+    corners: Vec<Vec<DVec3>>,
+    /// Non-hull patches.
+    candidates: Vec<u32>,
+    /// Scale-relative tolerance of the plane tests.
+    tol: f64,
+}
+
+/// More candidate blockers than this and the proof is not attempted: the pair is traced.
+const MAX_PROOF_BLOCKERS: usize = 512;
+
+impl Blockers {
+    /// The candidate blockers of the roots of `e`.
+    pub fn new(e: &Elements, diagonal: f64) -> Blockers {
+        let tol = 1e-9 * diagonal;
+        let n = e.roots;
+        let corners: Vec<Vec<DVec3>> = (0..n as u32).map(|k| e.corners(k).to_vec()).collect();
+        let boxes: Vec<(DVec3, DVec3)> = corners.iter().map(|c| bounds(c)).collect();
+        let planes: Vec<(DVec3, DVec3)> = (0..n).map(|k| (e.normal[k], e.centre[k])).collect();
+        let all: Vec<DVec3> = corners.iter().flatten().copied().collect();
+        let (lo, hi) = boxes
+            .iter()
+            .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(a, b), &(l, h)| {
+                (a.min(l), b.max(h))
+            });
+        let candidates = (0..n)
+            .filter(|&k| {
+                let (nk, ck) = planes[k];
+                // The box's lowest point along n bounds every corner; else scan.
+                let bound = (nk * lo).min(nk * hi).element_sum() - nk.dot(ck);
+                let hull = bound >= -tol || all.iter().all(|&q| nk.dot(q - ck) >= -tol);
+                !hull
+            })
+            .map(|k| k as u32)
+            .collect();
+        Blockers {
+            boxes,
+            planes,
+            corners,
+            candidates,
+            tol,
+        }
+    }
+
+    /// Number of patches that may block something.
+    pub fn len(&self) -> usize {
+        self.candidates.len()
+    }
+
+    /// True when nothing can block anything (a convex room).
+    pub fn is_empty(&self) -> bool {
+        self.candidates.is_empty()
+    }
+
+    /// True when no patch can block any segment between points of `a` and `b` (roots
+    /// `ra`, `rb`): for each candidate, its box misses the pair's box, or it lies on or
+    /// behind the plane of `a` or of `b`, or both elements lie on one side of its plane
+    /// (a segment between them never crosses that plane).
+    pub fn unoccluded(&self, a: &[DVec3], ra: u32, b: &[DVec3], rb: u32) -> bool {
+        if self.candidates.is_empty() {
+            return true;
+        }
+        if self.candidates.len() > MAX_PROOF_BLOCKERS {
+            return false;
+        }
+        let tol = self.tol;
+        let (la, ha) = bounds(a);
+        let (lb, hb) = bounds(b);
+        let (lo, hi) = (la.min(lb) - tol, ha.max(hb) + tol);
+        let (pa, pb) = (self.planes[ra as usize], self.planes[rb as usize]);
+        self.candidates.iter().all(|&k| {
+            if k == ra || k == rb {
+                return true;
+            }
+            let (lk, hk) = self.boxes[k as usize];
+            if lk.cmpgt(hi).any() || hk.cmplt(lo).any() {
+                return true;
+            }
+            let ck = &self.corners[k as usize];
+            if range(pa, ck).1 <= tol || range(pb, ck).1 <= tol {
+                return true;
+            }
+            let pk = self.planes[k as usize];
+            let (ra_, rb_) = (range(pk, a), range(pk, b));
+            (ra_.0 >= -tol && rb_.0 >= -tol) || (ra_.1 <= tol && rb_.1 <= tol)
+        })
+    }
+}
+
+/// Axis-aligned bounds of some points.
+pub fn bounds(p: &[DVec3]) -> (DVec3, DVec3) {
+    p.iter()
+        .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &q| {
+            (lo.min(q), hi.max(q))
+        })
+}
+
+/// Signed distances of `pts` from the plane `(normal, point)`, as (min, max).
+pub fn range(plane: (DVec3, DVec3), pts: &[DVec3]) -> (f64, f64) {
+    let (n, c) = plane;
+    pts.iter()
+        .map(|&q| n.dot(q - c))
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), d| {
+            (lo.min(d), hi.max(d))
+        })
+}
+
+/// Everything a link evaluation reads.
+pub struct Context<'a> {
+    /// The elements.
+    pub elements: &'a Elements,
+    /// The patch set the roots came from (what Embree traces).
+    pub patches: &'a PatchSet,
+    /// Visibility queries.
+    pub vis: &'a Visibility,
+    /// Occlusion proofs.
+    pub blockers: &'a Blockers,
+    /// Seed of the random streams.
+    pub seed: u64,
+    /// Visibility strata per side: `rays²` rays per traced link.
+    pub rays: usize,
+    /// Relative tolerance of the unoccluded integral.
+    pub quadrature: f64,
+    /// Scale-relative tolerance of the facing tests.
+    pub tol: f64,
+}
+
+/// Parameter points of the 3 x 3 grid the oracle evaluates `F(x → P_s)` at.
+const GRID: [f64; 3] = [1.0 / 6.0, 0.5, 5.0 / 6.0];
+
+/// Evaluates the link `r ← s`; `None` when the two cannot exchange light (one behind the
+/// other's plane, or every visibility ray blocked).
+pub fn evaluate(ctx: &Context, r: u32, s: u32) -> (Option<Link>, Cost) {
+    let e = ctx.elements;
+    let (ri, si) = (r as usize, s as usize);
+    let (pr, ps) = (e.corners(r), e.corners(s));
+    let (nr, ns) = (e.normal[ri], e.normal[si]);
+    let mut cost = Cost::default();
+    // Facing: some of s strictly in front of r, and some of r in front of s.
+    if range((nr, e.centre[ri]), ps).1 <= ctx.tol || range((ns, e.centre[si]), pr).1 <= ctx.tol {
+        return (None, cost);
+    }
+    let receiver = Receiver {
+        poly: ps,
+        normal: ns,
+        centroid: e.centre[si],
+    };
+    // The oracle's samples of F(x -> P_s) over the receiver.
+    let (mut fmin, mut fmax) = (f64::INFINITY, 0.0f64);
+    for &u in &GRID {
+        for &v in &GRID {
+            let x = e.point(r, u, v).0;
+            let f = exact::point_factor(x, nr, &receiver);
+            fmin = fmin.min(f);
+            fmax = fmax.max(f);
+        }
+    }
+    cost.evals += 9;
+    let area = e.area[ri];
+    let integral = exact::integrate(
+        &mut Emitter::new(e.piece[ri]),
+        nr,
+        &receiver,
+        ctx.quadrature,
+        1e-14 * area,
+    );
+    cost.evals += integral.evals;
+    let f_open = (integral.value / area).max(0.0);
+    let q_err = integral.err / area;
+    if f_open <= 0.0 {
+        return (None, cost);
+    }
+    let (root_r, root_s) = (e.root[ri], e.root[si]);
+    if ctx.blockers.unoccluded(pr, root_r, ps, root_s) {
+        let link = Link {
+            src: s,
+            f: f_open,
+            err: q_err,
+            df: (fmax - fmin) + q_err,
+            partial: false,
+        };
+        return (Some(link), cost);
+    }
+    let (v, rays) = visible_fraction(ctx, r, s);
+    cost.rays += rays;
+    if v <= 0.0 {
+        return (None, cost);
+    }
+    let n = (ctx.rays * ctx.rays) as f64;
+    let partial = v < 1.0;
+    let link = Link {
+        src: s,
+        f: f_open * v,
+        err: q_err + f_open * (v * (1.0 - v) / n).sqrt(),
+        df: if partial { fmax } else { fmax - fmin } + q_err,
+        partial,
+    };
+    (Some(link), cost)
+}
+
+/// Kernel-weighted visible fraction between `r` and `s` from `rays²` traced segments, and
+/// the number of rays traced.
+fn visible_fraction(ctx: &Context, r: u32, s: u32) -> (f64, u64) {
+    let e = ctx.elements;
+    let (nr, ns) = (e.normal[r as usize], e.normal[s as usize]);
+    let n = ctx.rays.max(1);
+    let mut rng = Pcg32::keyed(
+        ctx.seed,
+        0x4852_4c4e_4b00_0000 | u64::from(r),
+        u64::from(s),
+        0,
+    );
+    let cells = n * n;
+    // Source strata in random order (Fisher–Yates).
+    let mut perm: Vec<u32> = (0..cells as u32).collect();
+    for k in (1..cells).rev() {
+        let j = rng.below(k as u32 + 1) as usize;
+        perm.swap(k, j);
+    }
+    let inv = 1.0 / n as f64;
+    let mut segs: Vec<SegmentRay> = Vec::with_capacity(cells);
+    let mut weights: Vec<f64> = Vec::with_capacity(cells);
+    for c in 0..cells {
+        let (a, b) = ((c % n) as f64, (c / n) as f64);
+        let (x, jx) = e.point(r, (a + rng.next_f64()) * inv, (b + rng.next_f64()) * inv);
+        let d = perm[c] as usize;
+        let (a2, b2) = ((d % n) as f64, (d / n) as f64);
+        let (y, jy) = e.point(s, (a2 + rng.next_f64()) * inv, (b2 + rng.next_f64()) * inv);
+        let w = y - x;
+        let r2 = w.length_squared();
+        let (cx, cy) = (nr.dot(w), -ns.dot(w));
+        if cx <= 0.0 || cy <= 0.0 || r2 <= 0.0 {
+            continue;
+        }
+        weights.push(cx * cy / (r2 * r2) * jx * jy);
+        segs.push(
+            ctx.vis
+                .segment_ray(x.as_vec3(), nr.as_vec3(), y.as_vec3(), ns.as_vec3()),
+        );
+    }
+    if segs.is_empty() {
+        return (0.0, 0);
+    }
+    let mut free = vec![false; segs.len()];
+    ctx.vis.segments_visible(&segs, &mut free);
+    let (mut num, mut den) = (0.0, 0.0);
+    let mut any_blocked = false;
+    for (w, &f) in weights.iter().zip(&free) {
+        den += w;
+        if f {
+            num += w;
+        } else {
+            any_blocked = true;
+        }
+    }
+    let v = if den > 0.0 { num / den } else { 0.0 };
+    // All free: exactly visible (the ratio is 1 up to rounding).
+    let v = if any_blocked { v.min(1.0 - 1e-12) } else { 1.0 };
+    (v, segs.len() as u64)
+}
+
+/// Point-to-polygon factor from `x` (unit normal `n`) to the polygon of element `s`,
+/// one-sided: 0 when `x` is behind `s`.
+pub fn point_factor(e: &Elements, x: DVec3, n: DVec3, s: u32) -> f64 {
+    let si = s as usize;
+    if e.normal[si].dot(x - e.centre[si]) <= 0.0 {
+        return 0.0;
+    }
+    point_to_polygon_unit(x, n, e.corners(s))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn range_and_bounds() {
+        let pts = [DVec3::new(0.0, 0.0, 1.0), DVec3::new(1.0, 2.0, -1.0)];
+        assert_eq!(range((DVec3::Z, DVec3::ZERO), &pts), (-1.0, 1.0));
+        let (lo, hi) = bounds(&pts);
+        assert_eq!(lo, DVec3::new(0.0, 0.0, -1.0));
+        assert_eq!(hi, DVec3::new(1.0, 2.0, 1.0));
+    }
+}

@@ -1,0 +1,598 @@
+//! Hierarchical radiosity: elements and links where the light needs them, not a uniform
+//! grid (Hanrahan, Salzman and Aupperle, "A rapid hierarchical radiosity algorithm",
+//! SIGGRAPH 1991; the patches-and-elements idea of Cohen, Greenberg, Immel and Brock 1986,
+//! and the lecture notes' adaptive subdivision).
+//!
+//! The flat path computes a factor between every pair of patches of a uniform mesh. Here
+//! the patches of a coarse mesh are only the *roots* of a tree of elements
+//! ([`element`]); light moves along *links* between elements of any level ([`link`]),
+//! each with a form factor from the exact point-to-polygon integral and Embree visibility.
+//! A link whose brightness-weighted error is above the tolerance is replaced by four finer
+//! ones, splitting the receiver or the source ([`refine`]); the system is solved on the
+//! tree by gathering over links and push-pull ([`solve`]); and refinement is repeated with
+//! the new radiosities until no link changes (multigridding, HSA section 4.2):
+//!
+//! `roots → contact splits, buried leaves → links between roots →
+//!  (refine links ⇄ solve) until stable → leaf mesh → output`.
+//!
+//! The result is a set of leaves of very different sizes: large where light is smooth,
+//! down to the minimum area along shadow boundaries, contacts and bright nearby sources.
+//! [`leaves`] turns them into a mesh without T-vertex cracks for the output stage.
+//!
+//! **Tolerances.** `error` is relative to the scene's mean radiosity `B̄` (area-weighted
+//! luminance, first estimated from the emission as `Σ E A / Σ A / (1 - ρ̄)`, then taken from
+//! each solve): a link is refined while it may carry an error above `error × B̄` in the
+//! radiosity it brings. The minimum area defaults to `(d / 512)²` for a scene of diagonal
+//! `d`.
+//!
+//! **Determinism.** Links are evaluated in parallel but elements are created on one
+//! thread, in the order of the decisions (which are collected in element order), and
+//! random streams are keyed on `(seed, receiver, source)`: the same seed gives the same
+//! hierarchy and the same bits on any number of threads.
+
+pub mod element;
+pub mod leaves;
+pub mod link;
+pub mod refine;
+pub mod solve;
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use crate::mesh::PatchSet;
+use crate::visibility::Visibility;
+use element::Elements;
+use link::{Blockers, Context, Cost, Link};
+use refine::{Decision, Oracle};
+use solve::{Materials, SolveStats, State};
+
+/// Settings of a hierarchical solution.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Settings {
+    /// Link tolerance, relative to the mean radiosity.
+    pub error: f64,
+    /// Smallest element area (scene units²); `None` for `(diagonal / 512)²`.
+    pub min_area: Option<f64>,
+    /// Visibility strata per side: `rays²` rays per link that is not provably unoccluded.
+    pub rays: usize,
+    /// Relative tolerance of each link's unoccluded integral.
+    pub quadrature: f64,
+    /// Per-element relative change at which the solve stops.
+    pub tolerance: f64,
+    /// Iteration cap of each solve.
+    pub max_iterations: usize,
+    /// Cap on refine-and-solve passes.
+    pub max_passes: usize,
+    /// Refinement stops (with a note) once there are this many links.
+    pub max_links: usize,
+    /// Seed of the random streams.
+    pub seed: u64,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Settings {
+            error: 0.01,
+            min_area: None,
+            rays: 4,
+            quadrature: 1e-6,
+            tolerance: 1e-7,
+            max_iterations: 10_000,
+            max_passes: 8,
+            max_links: 40_000_000,
+            seed: 1,
+        }
+    }
+}
+
+impl Settings {
+    /// Checks the ranges, before any work.
+    pub fn validate(&self) -> crate::Result<()> {
+        let bad = |m: String| Err(crate::Error::Config(m));
+        if !(self.error > 0.0 && self.error.is_finite()) {
+            return bad(format!(
+                "--error must be a positive number, got {}",
+                self.error
+            ));
+        }
+        if let Some(a) = self.min_area {
+            if !(a > 0.0 && a.is_finite()) {
+                return bad(format!("--min-area must be a positive number, got {a}"));
+            }
+        }
+        if !(1..=64).contains(&self.rays) {
+            return bad(format!("--link-rays must be in 1..=64, got {}", self.rays));
+        }
+        if !(self.quadrature > 0.0 && self.quadrature < 1.0) {
+            return bad(format!(
+                "quadrature tolerance must be in (0, 1), got {}",
+                self.quadrature
+            ));
+        }
+        if !(self.tolerance > 0.0 && self.tolerance < 1.0) {
+            return bad(format!(
+                "--tolerance must be in (0, 1), got {}",
+                self.tolerance
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// One refine-and-solve pass.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Pass {
+    /// Links replaced by finer ones.
+    pub refined: usize,
+    /// Links after the pass.
+    pub links: usize,
+    /// Elements after the pass.
+    pub elements: usize,
+    /// Rays cast by the pass (links and buried tests).
+    pub rays: u64,
+    /// The solve that followed.
+    pub solve: SolveStats,
+    /// Seconds refining.
+    pub refine_seconds: f64,
+    /// Seconds solving.
+    pub solve_seconds: f64,
+}
+
+/// What a hierarchical solution did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Report {
+    /// Root patches.
+    pub roots: usize,
+    /// Elements in all.
+    pub elements: usize,
+    /// Leaves (the output's patches).
+    pub leaves: usize,
+    /// Leaves inside closed solids.
+    pub buried: usize,
+    /// Element splits made along contacts before linking.
+    pub contact_splits: usize,
+    /// Links at the end.
+    pub links: usize,
+    /// Of which partly visible.
+    pub partial_links: usize,
+    /// Initial links between roots.
+    pub initial_links: usize,
+    /// Rays cast in all.
+    pub rays: u64,
+    /// Point-to-polygon evaluations in all.
+    pub evals: u64,
+    /// Passes, in order.
+    pub passes: Vec<Pass>,
+    /// Absolute link tolerance of the last pass.
+    pub eps: f64,
+    /// Mean radiosity (area-weighted luminance) of the solution.
+    pub mean_radiosity: f64,
+    /// Minimum element area used.
+    pub min_area: f64,
+    /// Links still over the tolerance because their elements are at the minimum area.
+    pub unresolved: usize,
+    /// Largest estimated error of a leaf's radiosity (sum of the brightness-weighted errors
+    /// of the links into it and its ancestors), relative to the mean radiosity.
+    pub max_error: f64,
+    /// The same, area-weighted mean over visible leaves.
+    pub mean_error: f64,
+    /// Emitted and absorbed power (`Σ A E`, `Σ A (1 - ρ) H`, RGB).
+    pub emitted: [f64; 3],
+    /// See `emitted`.
+    pub absorbed: [f64; 3],
+    /// Things the user should know (a cap reached, a solve not converged).
+    pub notes: Vec<String>,
+}
+
+/// A solved hierarchy.
+pub struct Solution {
+    /// The element tree.
+    pub elements: Elements,
+    /// Links per receiving element.
+    pub links: Vec<Vec<Link>>,
+    /// Radiosity per element.
+    pub state: State,
+    /// What was done.
+    pub report: Report,
+}
+
+/// Rec. 709 luminance of an RGB triple.
+fn luminance(c: [f64; 3]) -> f64 {
+    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+}
+
+/// Builds, refines and solves the hierarchy over the root patches `patches` (whose
+/// triangles `vis` traces); `progress` hears about each finished pass.
+pub fn run(
+    patches: &PatchSet,
+    vis: &Visibility,
+    s: &Settings,
+    progress: &(dyn Fn(&Pass) + Sync),
+) -> crate::Result<Solution> {
+    s.validate()?;
+    let diag = patches.diagonal;
+    let tol = 1e-9 * diag;
+    let min_area = s.min_area.unwrap_or((diag / 512.0).powi(2));
+    let mut e = Elements::from_patches(patches);
+    let mut report = Report {
+        roots: e.roots,
+        min_area,
+        ..Default::default()
+    };
+    let material =
+        |e: &Elements, k: usize| &patches.materials[patches.material[e.root[k] as usize] as usize];
+    // Contacts, then buried leaves.
+    let contacts = refine::contacts(&e, 1e-6 * diag);
+    report.contact_splits = refine::split_along_contacts(&mut e, &contacts, min_area, tol);
+    let normals: Vec<glam::DVec3> = e.normal[..e.roots].to_vec();
+    let leaves: Vec<u32> = e.leaves().collect();
+    let (_, bury_rays) = refine::bury(&mut e, &leaves, vis, &normals, s.seed);
+    report.rays += bury_rays;
+
+    let blockers = Blockers::new(&e, diag);
+    // Initial links between every pair of roots.
+    let n = e.roots as u32;
+    let specs: Vec<(u32, u32)> = (0..n)
+        .flat_map(|r| (0..n).filter(move |&t| t != r).map(move |t| (r, t)))
+        .collect();
+    let mut links: Vec<Vec<Link>> = vec![Vec::new(); e.len()];
+    {
+        let ctx = Context {
+            elements: &e,
+            patches,
+            vis,
+            blockers: &blockers,
+            seed: s.seed,
+            rays: s.rays,
+            quadrature: s.quadrature,
+            tol,
+        };
+        let cost = evaluate_into(&ctx, &specs, &mut links);
+        report.rays += cost.rays;
+        report.evals += cost.evals;
+    }
+    report.initial_links = links.iter().map(Vec::len).sum();
+
+    // Radiosity starts at the emission; the mean from the furnace estimate.
+    let mut state = State::default();
+    let (rho, emit) = materials(&e, &material);
+    state.b = emit.clone();
+    state.spread = vec![[0.0; 3]; e.len()];
+    state.h = vec![[0.0; 3]; e.len()];
+    solve::pull(&e, &e.visible_areas(), &mut state);
+    let (mut sum_ea, mut sum_a, mut sum_rho) = (0.0, 0.0, 0.0);
+    for k in 0..e.roots {
+        let a = e.area[k];
+        sum_ea += a * luminance(emit[k]);
+        sum_rho += a * luminance(rho[k]);
+        sum_a += a;
+    }
+    let mut b_ref = sum_ea / sum_a / (1.0 - sum_rho / sum_a).max(1e-3);
+
+    for pass_no in 0..s.max_passes.max(1) {
+        let t0 = Instant::now();
+        let eps = s.error * b_ref;
+        report.eps = eps;
+        let rays_before = report.rays;
+        let refined = refine_links(
+            &mut e,
+            &mut links,
+            &mut state,
+            patches,
+            vis,
+            &blockers,
+            s,
+            eps,
+            min_area,
+            tol,
+            &normals,
+            &mut report,
+        );
+        let refine_seconds = t0.elapsed().as_secs_f64();
+        let t1 = Instant::now();
+        let (rho, emit) = materials(&e, &material);
+        let stats = solve::solve(
+            &e,
+            &links,
+            &Materials {
+                rho: &rho,
+                emit: &emit,
+            },
+            &mut state,
+            b_ref,
+            s.tolerance,
+            s.max_iterations,
+        );
+        b_ref = mean_radiosity(&e, &state).max(f64::MIN_POSITIVE);
+        let pass = Pass {
+            refined,
+            links: links.iter().map(Vec::len).sum(),
+            elements: e.len(),
+            rays: report.rays - rays_before,
+            solve: stats,
+            refine_seconds,
+            solve_seconds: t1.elapsed().as_secs_f64(),
+        };
+        progress(&pass);
+        report.passes.push(pass);
+        if !stats.converged {
+            report.notes.push(format!(
+                "pass {}: the solve stopped after {} iterations at a relative change of {:.1e} \
+                 (tolerance {:.1e})",
+                pass_no + 1,
+                stats.iterations,
+                stats.change,
+                s.tolerance
+            ));
+        }
+        if refined == 0 && pass_no > 0 {
+            break;
+        }
+        if pass_no + 1 == s.max_passes.max(1) && refined > 0 {
+            report.notes.push(format!(
+                "refinement was still changing {refined} links after {} passes (--max-passes)",
+                s.max_passes
+            ));
+        }
+    }
+    finish_report(
+        &e,
+        &links,
+        &state,
+        patches,
+        min_area,
+        b_ref,
+        &material,
+        &mut report,
+    );
+    Ok(Solution {
+        elements: e,
+        links,
+        state,
+        report,
+    })
+}
+
+/// Reflectance and emission per element, from its root's material.
+fn materials<'a>(
+    e: &Elements,
+    material: &impl Fn(&Elements, usize) -> &'a crate::scene::Material,
+) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    (0..e.len())
+        .map(|k| {
+            let m = material(e, k);
+            (m.rho, m.emit)
+        })
+        .unzip()
+}
+
+/// Area-weighted mean luminance of the visible leaves' radiosity.
+fn mean_radiosity(e: &Elements, state: &State) -> f64 {
+    let (mut sum, mut area) = (0.0, 0.0);
+    for l in e.leaves() {
+        let li = l as usize;
+        if !e.buried[li] {
+            sum += e.area[li] * luminance(state.b[li]);
+            area += e.area[li];
+        }
+    }
+    if area > 0.0 {
+        sum / area
+    } else {
+        0.0
+    }
+}
+
+/// Evaluates the candidate links `specs` in parallel and appends those that carry light
+/// to their receivers' lists, in the order of `specs`.
+fn evaluate_into(ctx: &Context, specs: &[(u32, u32)], links: &mut [Vec<Link>]) -> Cost {
+    let out: Vec<(Option<Link>, Cost)> = specs
+        .par_iter()
+        .map(|&(r, t)| link::evaluate(ctx, r, t))
+        .collect();
+    let mut cost = Cost::default();
+    for (&(r, _), (l, c)) in specs.iter().zip(out) {
+        cost += c;
+        if let Some(l) = l {
+            links[r as usize].push(l);
+        }
+    }
+    cost
+}
+
+/// Refines links until none needs it (or the link cap); returns the number replaced.
+#[allow(clippy::too_many_arguments)]
+fn refine_links(
+    e: &mut Elements,
+    links: &mut Vec<Vec<Link>>,
+    state: &mut State,
+    patches: &PatchSet,
+    vis: &Visibility,
+    blockers: &Blockers,
+    s: &Settings,
+    eps: f64,
+    min_area: f64,
+    tol: f64,
+    normals: &[glam::DVec3],
+    report: &mut Report,
+) -> usize {
+    let mut refined = 0;
+    loop {
+        let material = |e: &Elements, k: usize| {
+            &patches.materials[patches.material[e.root[k] as usize] as usize]
+        };
+        let (rho, _) = materials(e, &material);
+        let decisions: Vec<(u32, usize, Decision)> = {
+            let oracle = Oracle {
+                elements: e,
+                rho: &rho,
+                b: &state.b,
+                spread: &state.spread,
+                eps,
+                min_area,
+            };
+            (0..links.len())
+                .into_par_iter()
+                .flat_map_iter(|r| {
+                    let oracle = &oracle;
+                    links[r].iter().enumerate().filter_map(move |(k, l)| {
+                        match oracle.decide(r as u32, l) {
+                            Decision::Keep => None,
+                            d => Some((r as u32, k, d)),
+                        }
+                    })
+                })
+                .collect()
+        };
+        if decisions.is_empty() {
+            break;
+        }
+        let total: usize = links.iter().map(Vec::len).sum();
+        if total + 3 * decisions.len() > s.max_links {
+            report.notes.push(format!(
+                "refinement stopped at {total} links (cap {}): raise --error or --min-area",
+                s.max_links
+            ));
+            break;
+        }
+        // Split, on this thread, in decision order.
+        let mut new_leaves = Vec::new();
+        for &(r, k, d) in &decisions {
+            let target = match d {
+                Decision::SplitReceiver => r,
+                _ => links[r as usize][k].src,
+            };
+            if e.is_leaf(target) {
+                let kids = e.split(target);
+                for c in kids {
+                    // Children start from the parent's radiosity.
+                    state.b.push(state.b[target as usize]);
+                    state.spread.push([0.0; 3]);
+                    state.h.push([0.0; 3]);
+                    debug_assert_eq!(state.b.len() - 1, c as usize);
+                }
+                new_leaves.extend(kids);
+            }
+        }
+        let (_, bury_rays) = refine::bury(e, &new_leaves, vis, normals, s.seed);
+        report.rays += bury_rays;
+        links.resize(e.len(), Vec::new());
+        // The replacements, and the replaced links removed.
+        let mut specs = Vec::with_capacity(4 * decisions.len());
+        for &(r, k, d) in &decisions {
+            let l = links[r as usize][k];
+            match d {
+                Decision::SplitReceiver => specs.extend(e.children(r).map(|c| (c, l.src))),
+                _ => specs.extend(e.children(l.src).map(|c| (r, c))),
+            }
+        }
+        let mut at = 0;
+        while at < decisions.len() {
+            let r = decisions[at].0 as usize;
+            let mut end = at;
+            while end < decisions.len() && decisions[end].0 as usize == r {
+                end += 1;
+            }
+            let gone: Vec<usize> = decisions[at..end].iter().map(|d| d.1).collect();
+            let mut idx = 0;
+            links[r].retain(|_| {
+                let keep = gone.binary_search(&idx).is_err();
+                idx += 1;
+                keep
+            });
+            at = end;
+        }
+        let ctx = Context {
+            elements: e,
+            patches,
+            vis,
+            blockers,
+            seed: s.seed,
+            rays: s.rays,
+            quadrature: s.quadrature,
+            tol,
+        };
+        let cost = evaluate_into(&ctx, &specs, links);
+        report.rays += cost.rays;
+        report.evals += cost.evals;
+        refined += decisions.len();
+    }
+    refined
+}
+
+/// Fills the report's totals and error estimates.
+#[allow(clippy::too_many_arguments)]
+fn finish_report<'a>(
+    e: &Elements,
+    links: &[Vec<Link>],
+    state: &State,
+    _patches: &PatchSet,
+    min_area: f64,
+    b_ref: f64,
+    material: &impl Fn(&Elements, usize) -> &'a crate::scene::Material,
+    report: &mut Report,
+) {
+    let (rho, emit) = materials(e, material);
+    report.elements = e.len();
+    report.leaves = e.leaves().count();
+    report.buried = e.leaves().filter(|&l| e.buried[l as usize]).count();
+    report.links = links.iter().map(Vec::len).sum();
+    report.partial_links = links.iter().flatten().filter(|l| l.partial).count();
+    report.mean_radiosity = b_ref;
+    let oracle = Oracle {
+        elements: e,
+        rho: &rho,
+        b: &state.b,
+        spread: &state.spread,
+        eps: report.eps,
+        min_area,
+    };
+    // Error accumulated down the tree: a leaf's is the sum over its ancestors' links.
+    let mut down = vec![0.0f64; e.len()];
+    let mut unresolved = 0;
+    for p in 0..e.len() {
+        let mut own = 0.0;
+        for l in &links[p] {
+            let (var, spr) = oracle.error(p as u32, l);
+            let bar = (0..3)
+                .map(|c| rho[p][c] * state.b[l.src as usize][c] * l.err)
+                .fold(0.0, f64::max);
+            own += var + spr + bar;
+            if var + spr > report.eps {
+                unresolved += 1;
+            }
+        }
+        let parent = e.parent[p];
+        down[p] = own
+            + if parent == element::NONE {
+                0.0
+            } else {
+                down[parent as usize]
+            };
+    }
+    report.unresolved = unresolved;
+    let (mut worst, mut sum, mut area) = (0.0f64, 0.0, 0.0);
+    for l in e.leaves() {
+        let li = l as usize;
+        if e.buried[li] {
+            continue;
+        }
+        worst = worst.max(down[li]);
+        sum += e.area[li] * down[li];
+        area += e.area[li];
+    }
+    let scale = b_ref.max(f64::MIN_POSITIVE);
+    report.max_error = worst / scale;
+    report.mean_error = if area > 0.0 { sum / area / scale } else { 0.0 };
+    let (emitted, absorbed) = solve::power(
+        e,
+        &Materials {
+            rho: &rho,
+            emit: &emit,
+        },
+        state,
+    );
+    report.emitted = emitted;
+    report.absorbed = absorbed;
+}

@@ -1,0 +1,336 @@
+//! Refinement: which links are good enough, and which element to split when one is not.
+//!
+//! **Brightness-weighted error** (Hanrahan, Salzman and Aupperle 1991, section 5,
+//! "BF refinement", with the receiver-variation and source-spread terms of Holzschuch and
+//! Sillion, "An exhaustive error-bounding algorithm for hierarchical radiosity", Computer
+//! Graphics Forum 1998, in their simplest form). A link `r ← s` brings the receiver
+//! `ρ_r F_rs B_s`; treating it as one constant over the receiver, from one mean source
+//! radiosity, errs by about
+//!
+//! `ε_rs = max over channels of ρ_r (B_s ΔF_rs + ΔB_s F_rs)`,
+//!
+//! with `ΔF_rs` the variation of the visible point factor over the receiver
+//! ([`super::link`]) and `ΔB_s` the spread of the solved radiosity below the source. A
+//! link is refined while `ε_rs` exceeds the absolute tolerance and an element can still be
+//! split without going under the minimum area. Which one: the source when its spread
+//! dominates the error, else the larger of the two (the receiver on a tie), as in HSA.
+//! Partial links have `ΔF` equal to the largest point factor, so shadow boundaries refine
+//! first and furthest.
+//!
+//! **Contacts.** Where a patch stands on another (an edge of one lying in the other's
+//! plane, inside it, the rest of the patch in front: a box on a floor), the elements of
+//! the lower patch that the contact line crosses are split down to the minimum area before
+//! any link is made, so that no element straddles a contact ([`contacts`],
+//! [`split_along_contacts`]). Leaves that no ray can reach, such as floor under the box,
+//! are then marked buried ([`bury`]).
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use super::element::Elements;
+use super::link::{bounds, range, Link};
+use crate::formfactor::hemisphere::{basis, cosine_direction};
+use crate::sampling::Pcg32;
+use crate::visibility::Visibility;
+
+/// What to do with a link.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Decision {
+    /// Good enough (or nothing can be split).
+    Keep,
+    /// Replace by links from the source to the receiver's four children.
+    SplitReceiver,
+    /// Replace by links from the source's four children.
+    SplitSource,
+}
+
+/// The oracle's inputs for one link.
+pub struct Oracle<'a> {
+    /// The elements.
+    pub elements: &'a Elements,
+    /// Reflectance per element.
+    pub rho: &'a [[f64; 3]],
+    /// Current radiosity per element.
+    pub b: &'a [[f64; 3]],
+    /// Spread of leaf radiosity below each element.
+    pub spread: &'a [[f64; 3]],
+    /// Absolute tolerance on transported radiosity.
+    pub eps: f64,
+    /// No element is split into children smaller than this.
+    pub min_area: f64,
+}
+
+impl Oracle<'_> {
+    /// The brightness-weighted error of link `l` into receiver `r`, split into the
+    /// receiver-variation and source-spread terms (the channel maxima of each).
+    pub fn error(&self, r: u32, l: &Link) -> (f64, f64) {
+        let (rho, bs, ds) = (
+            self.rho[r as usize],
+            self.b[l.src as usize],
+            self.spread[l.src as usize],
+        );
+        let (mut var, mut spr) = (0.0f64, 0.0f64);
+        for c in 0..3 {
+            var = var.max(rho[c] * bs[c] * l.df);
+            spr = spr.max(rho[c] * ds[c] * l.f);
+        }
+        (var, spr)
+    }
+
+    /// True when `e` may be split.
+    pub fn splittable(&self, e: u32) -> bool {
+        self.elements.area[e as usize] / 4.0 >= self.min_area
+    }
+
+    /// What to do with link `l` into `r`.
+    pub fn decide(&self, r: u32, l: &Link) -> Decision {
+        let (var, spr) = self.error(r, l);
+        if var + spr <= self.eps {
+            return Decision::Keep;
+        }
+        let (r_ok, s_ok) = (self.splittable(r), self.splittable(l.src));
+        let a = &self.elements.area;
+        match (r_ok, s_ok) {
+            (false, false) => Decision::Keep,
+            (true, false) => Decision::SplitReceiver,
+            (false, true) => Decision::SplitSource,
+            (true, true) => {
+                if spr > var || a[l.src as usize] > a[r as usize] {
+                    Decision::SplitSource
+                } else {
+                    Decision::SplitReceiver
+                }
+            }
+        }
+    }
+}
+
+/// A contact segment on a root patch: the end points of an edge of another patch that
+/// lies in this patch's plane.
+pub type Contact = (DVec3, DVec3);
+
+/// The contact segments of every root: for roots `r` and `s` not parallel, each edge of
+/// `s` whose two ends lie in the plane of `r` (within `tol`), with the rest of `s` on or in
+/// front of it. Segments along the boundary of `r` are kept too; [`crosses`] tells apart
+/// those that cut through an element.
+pub fn contacts(e: &Elements, tol: f64) -> Vec<Vec<Contact>> {
+    let n = e.roots;
+    let boxes: Vec<(DVec3, DVec3)> = (0..n as u32).map(|k| bounds(e.corners(k))).collect();
+    (0..n)
+        .into_par_iter()
+        .map(|r| {
+            let plane = (e.normal[r], e.centre[r]);
+            let (lo, hi) = (boxes[r].0 - tol, boxes[r].1 + tol);
+            let mut out = Vec::new();
+            for s in 0..n {
+                if s == r || e.normal[r].dot(e.normal[s]).abs() > 1.0 - 1e-9 {
+                    continue;
+                }
+                let (ls, hs) = boxes[s];
+                if ls.cmpgt(hi).any() || hs.cmplt(lo).any() {
+                    continue;
+                }
+                let c = e.corners(s as u32);
+                if range(plane, c).0 < -tol {
+                    continue;
+                }
+                for k in 0..c.len() {
+                    let (a, b) = (c[k], c[(k + 1) % c.len()]);
+                    let on = |p: DVec3| plane.0.dot(p - plane.1).abs() <= tol;
+                    if on(a) && on(b) {
+                        out.push((a, b));
+                    }
+                }
+            }
+            out
+        })
+        .collect()
+}
+
+/// True when the segment `seg` passes through the interior of element `el` (its plane
+/// holding the segment): the segment clipped to the element shrunk by `tol` is not empty
+/// (Cyrus–Beck clipping against each edge's inward half-plane).
+pub fn crosses(e: &Elements, el: u32, seg: Contact, tol: f64) -> bool {
+    let poly = e.corners(el);
+    let n = e.normal[el as usize];
+    let (a, d) = (seg.0, seg.1 - seg.0);
+    let (mut t0, mut t1) = (0.0f64, 1.0f64);
+    for k in 0..poly.len() {
+        let (p, q) = (poly[k], poly[(k + 1) % poly.len()]);
+        let m = n.cross(q - p);
+        let len = m.length();
+        if len == 0.0 {
+            continue;
+        }
+        let m = m / len;
+        // Inside: m·(x - p) >= tol.
+        let (num, den) = (m.dot(a - p) - tol, m.dot(d));
+        if den == 0.0 {
+            if num < 0.0 {
+                return false;
+            }
+        } else {
+            let t = -num / den;
+            if den > 0.0 {
+                t0 = t0.max(t);
+            } else {
+                t1 = t1.min(t);
+            }
+        }
+        if t0 >= t1 {
+            return false;
+        }
+    }
+    t1 - t0 > 1e-12
+}
+
+/// Splits, down to `min_area`, every element that a contact of its root crosses; returns
+/// the number of splits.
+pub fn split_along_contacts(
+    e: &mut Elements,
+    contacts: &[Vec<Contact>],
+    min_area: f64,
+    tol: f64,
+) -> usize {
+    let mut splits = 0;
+    let mut stack: Vec<u32> = Vec::new();
+    for root in 0..e.roots as u32 {
+        let segs = &contacts[root as usize];
+        if segs.is_empty() {
+            continue;
+        }
+        stack.clear();
+        stack.push(root);
+        while let Some(el) = stack.pop() {
+            if e.area[el as usize] / 4.0 < min_area {
+                continue;
+            }
+            if segs.iter().any(|&s| crosses(e, el, s, tol)) {
+                let kids = e.split(el);
+                splits += 1;
+                // Reverse, so that children are visited in order.
+                stack.extend(kids.iter().rev());
+            }
+        }
+    }
+    splits
+}
+
+/// Rays per leaf of the buried test.
+pub const BURY_RAYS: usize = 16;
+
+/// Marks as buried each leaf of `leaves` from which all of [`BURY_RAYS`] rays (jittered
+/// points, cosine-weighted directions) meet the back of a patch: its whole surface lies
+/// inside a closed solid. A ray that escapes or meets a front side proves the leaf is
+/// surface. Returns the number buried and the rays cast.
+pub fn bury(
+    e: &mut Elements,
+    leaves: &[u32],
+    vis: &Visibility,
+    normals: &[DVec3],
+    seed: u64,
+) -> (usize, u64) {
+    let flags: Vec<bool> = leaves
+        .par_iter()
+        .map(|&el| {
+            let mut rng = Pcg32::keyed(seed, 0x4255_5259, u64::from(el), 0);
+            let n = e.normal[el as usize];
+            let (t, b) = basis(n.as_vec3());
+            let (t, b) = (t.as_dvec3(), b.as_dvec3());
+            (0..BURY_RAYS).all(|_| {
+                let (x, _) = e.point(el, rng.next_f64(), rng.next_f64());
+                let d = cosine_direction(rng.next_f64(), rng.next_f64()).as_dvec3();
+                let dir = (t * d.x + b * d.y + n * d.z).normalize();
+                match vis.first_hit(x.as_vec3(), n.as_vec3(), dir.as_vec3()) {
+                    Some(h) => normals[h.patch as usize].dot(dir) > 0.0,
+                    None => false,
+                }
+            })
+        })
+        .collect();
+    let mut count = 0;
+    for (&el, &f) in leaves.iter().zip(&flags) {
+        e.buried[el as usize] = f;
+        count += usize::from(f);
+    }
+    (count, (leaves.len() * BURY_RAYS) as u64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::formfactor::exact::Piece;
+
+    fn floor() -> Elements {
+        // A 4 x 4 quad in z = 0 facing +z, as a root.
+        let mut e = Elements::default();
+        e.add_root(
+            Piece::Quad([
+                DVec3::ZERO,
+                DVec3::new(4.0, 0.0, 0.0),
+                DVec3::new(4.0, 4.0, 0.0),
+                DVec3::new(0.0, 4.0, 0.0),
+            ]),
+            DVec3::Z,
+        );
+        e
+    }
+
+    #[test]
+    fn crossing_contacts_split_to_the_minimum_area() {
+        let mut e = floor();
+        // A segment through the middle, and one along the boundary (not crossing).
+        let mid = (DVec3::new(1.0, 1.0, 0.0), DVec3::new(3.0, 1.0, 0.0));
+        let edge = (DVec3::new(0.0, 0.0, 0.0), DVec3::new(4.0, 0.0, 0.0));
+        assert!(crosses(&e, 0, mid, 1e-9));
+        assert!(!crosses(&e, 0, edge, 1e-9));
+        let n = split_along_contacts(&mut e, &[vec![mid, edge]], 0.1, 1e-9);
+        assert!(n > 0);
+        // Every leaf the segment crosses is at the minimum size: area / 4 < min_area.
+        for l in e.leaves().collect::<Vec<_>>() {
+            if crosses(&e, l, mid, 1e-9) {
+                assert!(
+                    e.area[l as usize] / 4.0 < 0.1,
+                    "leaf {l} area {}",
+                    e.area[l as usize]
+                );
+            }
+        }
+        // The boundary segment split nothing by itself.
+        let mut f = floor();
+        assert_eq!(split_along_contacts(&mut f, &[vec![edge]], 0.1, 1e-9), 0);
+    }
+
+    #[test]
+    fn oracle_stops_at_tolerance_and_minimum_area() {
+        let e = floor();
+        let rho = vec![[0.5; 3]];
+        let b = vec![[1.0; 3]];
+        let spread = vec![[0.0; 3]];
+        let link = Link {
+            src: 0,
+            f: 0.1,
+            err: 0.0,
+            df: 0.2,
+            partial: false,
+        };
+        let o = Oracle {
+            elements: &e,
+            rho: &rho,
+            b: &b,
+            spread: &spread,
+            eps: 0.05,
+            min_area: 1.0,
+        };
+        // Error 0.5 * 1 * 0.2 = 0.1 > 0.05: split (receiver on a tie of areas).
+        assert_eq!(o.decide(0, &link), Decision::SplitReceiver);
+        let o2 = Oracle { eps: 0.2, ..o };
+        assert_eq!(o2.decide(0, &link), Decision::Keep);
+        let o3 = Oracle {
+            min_area: 5.0,
+            eps: 0.05,
+            ..o2
+        };
+        assert_eq!(o3.decide(0, &link), Decision::Keep);
+    }
+}
