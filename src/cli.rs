@@ -159,9 +159,11 @@ enum SolverArg {
 
 #[derive(Args, Debug)]
 struct MeshArgs {
-    /// Target number of patches (the edge length is chosen to get close to it).
-    #[arg(long, default_value_t = 1000, conflicts_with = "max_edge")]
-    patches: usize,
+    /// Target number of patches (the edge length is chosen to get close to it); default
+    /// 1000. With `--method hierarchical` these are the root patches, and the default is
+    /// roots no longer than a quarter of the scene's diagonal.
+    #[arg(long, conflicts_with = "max_edge")]
+    patches: Option<usize>,
     /// Subdivide so that no patch edge is longer than this (scene units).
     #[arg(long)]
     max_edge: Option<f64>,
@@ -169,13 +171,47 @@ struct MeshArgs {
 
 impl MeshArgs {
     fn resolution(&self) -> Result<Resolution> {
-        Ok(match self.max_edge {
-            Some(h) if h > 0.0 && h.is_finite() => Resolution::MaxEdge(h),
-            Some(h) => bail!("--max-edge must be a positive length, got {h}"),
-            None if self.patches == 0 => bail!("--patches must be at least 1"),
-            None => Resolution::Patches(self.patches),
+        self.resolution_or(Resolution::Patches(1000))
+    }
+
+    /// The resolution asked for, or `default` when neither option is given.
+    fn resolution_or(&self, default: Resolution) -> Result<Resolution> {
+        Ok(match (self.max_edge, self.patches) {
+            (Some(h), _) if h > 0.0 && h.is_finite() => Resolution::MaxEdge(h),
+            (Some(h), _) => bail!("--max-edge must be a positive length, got {h}"),
+            (None, Some(0)) => bail!("--patches must be at least 1"),
+            (None, Some(n)) => Resolution::Patches(n),
+            (None, None) => default,
         })
     }
+}
+
+/// How a bake solves for radiosity.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum MethodArg {
+    /// Form factors between every pair of patches of a uniform mesh, then a matrix solver.
+    Flat,
+    /// Hierarchical radiosity: elements and links refined where the light needs them.
+    Hierarchical,
+}
+
+#[derive(Args, Debug)]
+struct HierarchyArgs {
+    /// Radiosity method.
+    #[arg(long, value_enum, default_value_t = MethodArg::Flat)]
+    method: MethodArg,
+    /// Hierarchical: link tolerance, relative to the scene's mean radiosity.
+    #[arg(long, default_value_t = 0.01)]
+    error: f64,
+    /// Hierarchical: smallest element area (scene units²); default (diagonal / 512)².
+    #[arg(long)]
+    min_area: Option<f64>,
+    /// Hierarchical: visibility strata per side of each link (rays² rays).
+    #[arg(long, default_value_t = 4)]
+    link_rays: usize,
+    /// Hierarchical: cap on refine-and-solve passes.
+    #[arg(long, default_value_t = 8)]
+    max_passes: usize,
 }
 
 #[derive(Args, Debug)]
@@ -279,6 +315,8 @@ struct BakeArgs {
     mesh: MeshArgs,
     #[command(flatten)]
     est: FactorArgs,
+    #[command(flatten)]
+    hier: HierarchyArgs,
     /// Radiosity solver.
     #[arg(long, value_enum, default_value_t = SolverArg::GaussSeidel)]
     solver: SolverArg,
@@ -394,10 +432,31 @@ fn bake(args: &BakeArgs) -> Result<()> {
     if !(args.tolerance > 0.0 && args.tolerance < 1.0) {
         bail!("--tolerance must be in (0, 1), got {}", args.tolerance);
     }
+    let hierarchy = match args.hier.method {
+        MethodArg::Flat => None,
+        MethodArg::Hierarchical => {
+            let h = radiosity::hierarchy::Settings {
+                error: args.hier.error,
+                min_area: args.hier.min_area,
+                rays: args.hier.link_rays,
+                tolerance: args.tolerance.min(1e-7),
+                max_iterations: args.max_iterations,
+                max_passes: args.hier.max_passes,
+                seed: args.est.seed,
+                ..Default::default()
+            };
+            h.validate()?;
+            Some(h)
+        }
+    };
+    let resolution = match hierarchy {
+        Some(_) => args.mesh.resolution_or(Resolution::DiagonalFraction(0.25))?,
+        None => args.mesh.resolution()?,
+    };
     let cfg = BakeConfig {
         scene: args.scene.clone(),
         out_dir: args.output.clone(),
-        resolution: args.mesh.resolution()?,
+        resolution,
         estimator: args.est.choice()?,
         seed: args.est.seed,
         method: match args.solver {
@@ -418,6 +477,7 @@ fn bake(args: &BakeArgs) -> Result<()> {
         factors: args.factors.clone(),
         steps: args.steps.clone(),
         repair: args.est.repair.repair(),
+        hierarchy,
     };
     let bars = Bars {
         bar: Mutex::new(None),

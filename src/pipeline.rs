@@ -9,6 +9,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use crate::error::{Error, Result};
+use crate::hierarchy;
 use crate::formfactor::{
     self, AreaMc, Context, Estimator, Hemicube, Hemisphere, Nodes, Pattern, SemiAnalytic,
 };
@@ -133,6 +134,9 @@ pub struct BakeConfig {
     pub steps: Vec<usize>,
     /// Physical constraints to restore in the form factors before solving.
     pub repair: Repair,
+    /// Solve hierarchically with these settings instead of on the flat patch matrix
+    /// ([`crate::hierarchy`]); `resolution` then sets the root patches.
+    pub hierarchy: Option<hierarchy::Settings>,
 }
 
 impl Default for BakeConfig {
@@ -156,6 +160,7 @@ impl Default for BakeConfig {
             factors: None,
             steps: Vec::new(),
             repair: Repair::None,
+            hierarchy: None,
         }
     }
 }
@@ -216,6 +221,8 @@ pub struct BakeSummary {
     pub warnings: Vec<String>,
     /// Embree version in use.
     pub embree: String,
+    /// What the hierarchical solution did (hierarchical bakes only).
+    pub hierarchy: Option<hierarchy::Report>,
 }
 
 impl BakeSummary {
@@ -364,6 +371,9 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     };
     let scene = timer.run("load", 0, || Scene::load(&cfg.scene))?;
     scene.require_emitter()?;
+    if let Some(h) = &cfg.hierarchy {
+        return bake_hierarchical(cfg, h, scene, timer);
+    }
     let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
         let p = PatchSet::build(&scene, cfg.resolution)?;
         p.validate()?;
@@ -399,26 +409,16 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     let verts = timer.run("per-vertex", 0, || {
         output::interpolate(&patches, &b, cfg.crease_deg)
     });
-    std::fs::create_dir_all(&cfg.out_dir).map_err(|e| Error::io(&cfg.out_dir, e))?;
     let files = timer.run("write", 0, || -> Result<Vec<PathBuf>> {
-        let exr = cfg.out_dir.join("radiosity.exr");
-        output::write_exr(&exr, &verts, &scene.name)?;
-        let camera = scene.camera_or_framing();
-        let (w, h) = cfg.preview;
-        let image = output::render_preview(&verts, &camera, w, h, cfg.exposure);
-        let png = cfg.out_dir.join("preview.png");
-        output::write_png(&png, &image)?;
-        let ply = cfg.out_dir.join("mesh.ply");
-        output::write_ply(&ply, &verts, image.exposure)?;
-        let mut files = vec![exr, ply, png];
+        let (mut files, exposure) = write_bake(cfg, &scene, &verts)?;
         if !cfg.steps.is_empty() {
             files.extend(write_step_previews(
                 &patches,
                 &ff,
                 &cfg.steps,
                 cfg,
-                &camera,
-                Exposure::Fixed(image.exposure),
+                &scene.camera_or_framing(),
+                Exposure::Fixed(exposure),
             )?);
         }
         Ok(files)
@@ -439,6 +439,97 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         files,
         warnings: scene.warnings.clone(),
         embree,
+        hierarchy: None,
+    })
+}
+
+/// Writes `radiosity.exr`, `preview.png` and `mesh.ply` of a bake into `cfg.out_dir`;
+/// returns the files and the preview's exposure.
+fn write_bake(
+    cfg: &BakeConfig,
+    scene: &Scene,
+    verts: &output::VertexRadiosity,
+) -> Result<(Vec<PathBuf>, f32)> {
+    std::fs::create_dir_all(&cfg.out_dir).map_err(|e| Error::io(&cfg.out_dir, e))?;
+    let exr = cfg.out_dir.join("radiosity.exr");
+    output::write_exr(&exr, verts, &scene.name)?;
+    let camera = scene.camera_or_framing();
+    let (w, h) = cfg.preview;
+    let image = output::render_preview(verts, &camera, w, h, cfg.exposure);
+    let png = cfg.out_dir.join("preview.png");
+    output::write_png(&png, &image)?;
+    let ply = cfg.out_dir.join("mesh.ply");
+    output::write_ply(&ply, verts, image.exposure)?;
+    Ok((vec![exr, ply, png], image.exposure))
+}
+
+/// The hierarchical bake after loading: root patches, BVH, refine-and-solve passes, the
+/// leaf mesh, per-vertex values, files.
+fn bake_hierarchical(
+    cfg: &BakeConfig,
+    settings: &hierarchy::Settings,
+    scene: Scene,
+    mut timer: Timer,
+) -> Result<BakeSummary> {
+    settings.validate()?;
+    let obs = timer.obs;
+    let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
+        let p = PatchSet::build(&scene, cfg.resolution)?;
+        p.validate()?;
+        Ok(p)
+    })?;
+    let vis = timer.run("bvh", 0, || Visibility::new(&patches))?;
+    let embree = vis.raw().version();
+    let total = settings.max_passes as u64;
+    let done = std::sync::atomic::AtomicU64::new(0);
+    let sol = timer.run("hierarchy", total, || {
+        hierarchy::run(&patches, &vis, settings, &|_| {
+            let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            obs.advance(d);
+        })
+    })?;
+    let (leaves, b, _) = hierarchy::leaves::leaf_mesh(&sol.elements, &patches, &sol.state.b);
+    if let Some(k) = b.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
+        return Err(Error::Scene {
+            scene: scene.source.clone(),
+            msg: format!("the solve produced a non-finite radiosity at leaf {k}"),
+        });
+    }
+    let verts = timer.run("per-vertex", 0, || {
+        output::interpolate(&leaves, &b, cfg.crease_deg)
+    });
+    let files = timer.run("write", 0, || write_bake(cfg, &scene, &verts).map(|f| f.0))?;
+    let r = sol.report;
+    let last = r.passes.last().copied().unwrap_or_default();
+    let solve = SolveReport {
+        solver: "hierarchical (gather, push-pull)".into(),
+        iterations: r.passes.iter().map(|p| p.solve.iterations).sum(),
+        residual: last.solve.change,
+        history: Vec::new(),
+        seconds: r.passes.iter().map(|p| p.solve_seconds).sum(),
+        converged: last.solve.converged,
+        notes: r.notes.clone(),
+    };
+    Ok(BakeSummary {
+        scene: scene.name.clone(),
+        patches: r.leaves,
+        triangles: leaves.triangles.len(),
+        vertices: verts.positions.len(),
+        rays: r.rays,
+        estimator: format!(
+            "hierarchical(error={:e}, min-area={:.3e}, link rays={}x{})",
+            settings.error, r.min_area, settings.rays, settings.rays
+        ),
+        diagnostics: Diagnostics::default(),
+        max_row_sum_stderr: 0.0,
+        repair: RepairReport::default(),
+        solve,
+        stages: timer.stages,
+        peak_memory: peak_memory(),
+        files,
+        warnings: scene.warnings.clone(),
+        embree,
+        hierarchy: Some(r),
     })
 }
 
@@ -513,6 +604,10 @@ pub fn format_summary(s: &BakeSummary) -> String {
     use std::fmt::Write;
     let mut o = String::new();
     let ff_s = s.stage_seconds("form factors");
+    if let Some(h) = &s.hierarchy {
+        format_hierarchy(&mut o, s, h);
+        return o;
+    }
     let _ = writeln!(
         o,
         "baked `{}`: {} patches, {} triangles, {} vertices",
@@ -567,6 +662,13 @@ pub fn format_summary(s: &BakeSummary) -> String {
             " (NOT converged)"
         }
     );
+    format_tail(&mut o, s);
+    o
+}
+
+/// The lines every bake summary ends with: notes, times, warnings, files.
+fn format_tail(o: &mut String, s: &BakeSummary) {
+    use std::fmt::Write;
     for n in &s.solve.notes {
         let _ = writeln!(o, "note: {n}");
     }
@@ -579,5 +681,49 @@ pub fn format_summary(s: &BakeSummary) -> String {
         let _ = write!(o, " {}", f.display());
     }
     o.push('\n');
-    o
+}
+
+/// The summary of a hierarchical bake.
+fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
+    use std::fmt::Write;
+    let _ = writeln!(
+        o,
+        "baked `{}` hierarchically: {} roots -> {} elements, {} leaves ({} buried), {} triangles, {} vertices",
+        s.scene, h.roots, h.elements, h.leaves, h.buried, s.triangles, s.vertices
+    );
+    let _ = writeln!(
+        o,
+        "  links: {} ({} partly visible; {} between roots at the start), {} rays, {} point-factor evaluations, Embree {}",
+        h.links, h.partial_links, h.initial_links, h.rays, h.evals, s.embree
+    );
+    for (k, p) in h.passes.iter().enumerate() {
+        let _ = writeln!(
+            o,
+            "  pass {}: {} links refined -> {} links, {} elements, {} rays; solve {} iterations (change {:.1e}); {:.2}s + {:.2}s",
+            k + 1,
+            p.refined,
+            p.links,
+            p.elements,
+            p.rays,
+            p.solve.iterations,
+            p.solve.change,
+            p.refine_seconds,
+            p.solve_seconds
+        );
+    }
+    let lum = |c: [f64; 3]| 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
+    let (em, ab) = (lum(h.emitted), lum(h.absorbed));
+    let _ = writeln!(
+        o,
+        "  estimated error per leaf: max {:.2e}, mean {:.2e} of the mean radiosity {:.4e} (link tolerance {:.2e}); {} links at the minimum area {:.3e} still over it",
+        h.max_error, h.mean_error, h.mean_radiosity, h.eps, h.unresolved, h.min_area
+    );
+    let _ = writeln!(
+        o,
+        "  power: emitted {:.6e}, absorbed {:.6e} ({:+.2e} relative: escaped or error)",
+        em,
+        ab,
+        if em > 0.0 { (em - ab) / em } else { 0.0 }
+    );
+    format_tail(o, s);
 }

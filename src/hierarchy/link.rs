@@ -206,8 +206,10 @@ pub struct Context<'a> {
 const GRID: [f64; 3] = [1.0 / 6.0, 0.5, 5.0 / 6.0];
 
 /// Evaluates the link `r ← s`; `None` when the two cannot exchange light (one behind the
-/// other's plane, or every visibility ray blocked).
-pub fn evaluate(ctx: &Context, r: u32, s: u32) -> (Option<Link>, Cost) {
+/// other's plane, or every visibility ray blocked). The unoccluded integral is taken to
+/// the relative tolerance [`Context::quadrature`] or the absolute tolerance `f_tol` on
+/// `F_rs`, whichever is looser: a link that carries little light needs few digits.
+pub fn evaluate(ctx: &Context, r: u32, s: u32, f_tol: f64) -> (Option<Link>, Cost) {
     let e = ctx.elements;
     let (ri, si) = (r as usize, s as usize);
     let (pr, ps) = (e.corners(r), e.corners(s));
@@ -239,7 +241,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32) -> (Option<Link>, Cost) {
         nr,
         &receiver,
         ctx.quadrature,
-        1e-14 * area,
+        f_tol.max(1e-15) * area,
     );
     cost.evals += integral.evals;
     let f_open = (integral.value / area).max(0.0);

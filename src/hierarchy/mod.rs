@@ -58,6 +58,10 @@ pub struct Settings {
     pub rays: usize,
     /// Relative tolerance of each link's unoccluded integral.
     pub quadrature: f64,
+    /// Share of the link tolerance a link's quadrature error may take: its factor is
+    /// integrated to an absolute error of `accuracy × ε / (ρ_r B_s)` when that is looser
+    /// than `quadrature` (set it tiny for factors to full precision everywhere).
+    pub accuracy: f64,
     /// Per-element relative change at which the solve stops.
     pub tolerance: f64,
     /// Iteration cap of each solve.
@@ -77,6 +81,7 @@ impl Default for Settings {
             min_area: None,
             rays: 4,
             quadrature: 1e-6,
+            accuracy: 0.01,
             tolerance: 1e-7,
             max_iterations: 10_000,
             max_passes: 8,
@@ -103,6 +108,9 @@ impl Settings {
         }
         if !(1..=64).contains(&self.rays) {
             return bad(format!("--link-rays must be in 1..=64, got {}", self.rays));
+        }
+        if !(self.accuracy >= 0.0 && self.accuracy.is_finite()) {
+            return bad(format!("link accuracy must be >= 0, got {}", self.accuracy));
         }
         if !(self.quadrature > 0.0 && self.quadrature < 1.0) {
             return bad(format!(
@@ -231,6 +239,22 @@ pub fn run(
     report.rays += bury_rays;
 
     let blockers = Blockers::new(&e, diag);
+    // Radiosity starts at the emission; the mean from the furnace estimate.
+    let mut state = State::default();
+    let (rho, emit) = materials(&e, &material);
+    state.b = emit.clone();
+    state.spread = vec![[0.0; 3]; e.len()];
+    state.h = vec![[0.0; 3]; e.len()];
+    solve::pull(&e, &e.visible_areas(), &mut state);
+    let (mut sum_ea, mut sum_a, mut sum_rho) = (0.0, 0.0, 0.0);
+    for k in 0..e.roots {
+        let a = e.area[k];
+        sum_ea += a * luminance(emit[k]);
+        sum_rho += a * luminance(rho[k]);
+        sum_a += a;
+    }
+    let mut b_ref = sum_ea / sum_a / (1.0 - sum_rho / sum_a).max(1e-3);
+
     // Initial links between every pair of roots.
     let n = e.roots as u32;
     let specs: Vec<(u32, u32)> = (0..n)
@@ -248,27 +272,12 @@ pub fn run(
             quadrature: s.quadrature,
             tol,
         };
-        let cost = evaluate_into(&ctx, &specs, &mut links);
+        let tols = factor_tolerances(&specs, &rho, &state.b, s.accuracy * s.error * b_ref);
+        let cost = evaluate_into(&ctx, &specs, &tols, &mut links);
         report.rays += cost.rays;
         report.evals += cost.evals;
     }
     report.initial_links = links.iter().map(Vec::len).sum();
-
-    // Radiosity starts at the emission; the mean from the furnace estimate.
-    let mut state = State::default();
-    let (rho, emit) = materials(&e, &material);
-    state.b = emit.clone();
-    state.spread = vec![[0.0; 3]; e.len()];
-    state.h = vec![[0.0; 3]; e.len()];
-    solve::pull(&e, &e.visible_areas(), &mut state);
-    let (mut sum_ea, mut sum_a, mut sum_rho) = (0.0, 0.0, 0.0);
-    for k in 0..e.roots {
-        let a = e.area[k];
-        sum_ea += a * luminance(emit[k]);
-        sum_rho += a * luminance(rho[k]);
-        sum_a += a;
-    }
-    let mut b_ref = sum_ea / sum_a / (1.0 - sum_rho / sum_a).max(1e-3);
 
     for pass_no in 0..s.max_passes.max(1) {
         let t0 = Instant::now();
@@ -384,12 +393,42 @@ fn mean_radiosity(e: &Elements, state: &State) -> f64 {
     }
 }
 
-/// Evaluates the candidate links `specs` in parallel and appends those that carry light
-/// to their receivers' lists, in the order of `specs`.
-fn evaluate_into(ctx: &Context, specs: &[(u32, u32)], links: &mut [Vec<Link>]) -> Cost {
+/// The absolute tolerance on `F_rs` of each candidate link: `budget / (ρ_r B_s)`, the
+/// channel maximum (infinite for a dark source).
+fn factor_tolerances(
+    specs: &[(u32, u32)],
+    rho: &[[f64; 3]],
+    b: &[[f64; 3]],
+    budget: f64,
+) -> Vec<f64> {
+    specs
+        .iter()
+        .map(|&(r, t)| {
+            let w = (0..3)
+                .map(|c| rho[r as usize][c] * b[t as usize][c])
+                .fold(0.0, f64::max);
+            if w > 0.0 {
+                budget / w
+            } else {
+                f64::INFINITY
+            }
+        })
+        .collect()
+}
+
+/// Evaluates the candidate links `specs` (with absolute factor tolerances `tols`) in
+/// parallel and appends those that carry light to their receivers' lists, in the order
+/// of `specs`.
+fn evaluate_into(
+    ctx: &Context,
+    specs: &[(u32, u32)],
+    tols: &[f64],
+    links: &mut [Vec<Link>],
+) -> Cost {
     let out: Vec<(Option<Link>, Cost)> = specs
         .par_iter()
-        .map(|&(r, t)| link::evaluate(ctx, r, t))
+        .zip(tols)
+        .map(|(&(r, t), &f_tol)| link::evaluate(ctx, r, t, f_tol))
         .collect();
     let mut cost = Cost::default();
     for (&(r, _), (l, c)) in specs.iter().zip(out) {
@@ -513,7 +552,9 @@ fn refine_links(
             quadrature: s.quadrature,
             tol,
         };
-        let cost = evaluate_into(&ctx, &specs, links);
+        let (rho, _) = materials(e, &material);
+        let tols = factor_tolerances(&specs, &rho, &state.b, s.accuracy * eps);
+        let cost = evaluate_into(&ctx, &specs, &tols, links);
         report.rays += cost.rays;
         report.evals += cost.evals;
         refined += decisions.len();

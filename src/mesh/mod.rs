@@ -31,6 +31,8 @@ pub enum Resolution {
     MaxEdge(f64),
     /// About this many patches in all.
     Patches(usize),
+    /// No patch edge longer than this fraction of the scene's diagonal.
+    DiagonalFraction(f64),
 }
 
 /// The patches of a scene, as flat arrays indexed by [`PatchId`].
@@ -149,6 +151,12 @@ impl PatchSet {
                 return Err(Error::Config("patch count must be at least 1".into()))
             }
             Resolution::Patches(n) => edge_for_count(scene, n),
+            Resolution::DiagonalFraction(f) if f > 0.0 && f.is_finite() => f * diagonal,
+            Resolution::DiagonalFraction(f) => {
+                return Err(Error::Config(format!(
+                    "patch edge fraction must be > 0, got {f}"
+                )))
+            }
         };
         let mut set = PatchSet {
             scene: scene.name.clone(),
