@@ -212,6 +212,13 @@ struct HierarchyArgs {
     /// Hierarchical: cap on refine-and-solve passes.
     #[arg(long, default_value_t = 8)]
     max_passes: usize,
+    /// Hierarchical: relative tolerance of each link's unoccluded integral.
+    #[arg(long, default_value_t = 1e-6)]
+    link_quadrature: f64,
+    /// Hierarchical: share of the link tolerance a link's quadrature error may take (0:
+    /// every factor to `--link-quadrature`).
+    #[arg(long, default_value_t = 0.01)]
+    link_accuracy: f64,
 }
 
 #[derive(Args, Debug)]
@@ -442,6 +449,8 @@ fn bake(args: &BakeArgs) -> Result<()> {
                 tolerance: args.tolerance.min(1e-7),
                 max_iterations: args.max_iterations,
                 max_passes: args.hier.max_passes,
+                quadrature: args.hier.link_quadrature,
+                accuracy: args.hier.link_accuracy,
                 seed: args.est.seed,
                 ..Default::default()
             };

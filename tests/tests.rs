@@ -3,6 +3,7 @@
 mod bake;
 mod formfactors;
 mod geometry;
+mod hierarchy;
 mod invalid;
 mod shelf;
 mod stability;

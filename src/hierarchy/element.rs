@@ -57,7 +57,7 @@ impl Elements {
         let mut count = Vec::with_capacity(n);
         for i in 0..n {
             let (c, k) = patches.corner_points(i);
-            corners.extend(c[..k].iter().map(|p| p.as_dvec3()));
+            corners.extend(c[..k].iter().copied());
             count.push(k);
         }
         let welded = weld(&corners, 1e-9 * patches.diagonal);
@@ -71,7 +71,7 @@ impl Elements {
             } else {
                 Piece::Tri([c[0], c[1], c[2]])
             };
-            e.add_root(piece, patches.normal[i].as_dvec3().normalize());
+            e.add_root(piece, patches.normal[i].normalize());
         }
         e
     }

@@ -22,7 +22,7 @@
 
 use std::collections::HashMap;
 
-use glam::{DVec3, Vec3};
+use glam::DVec3;
 
 use super::element::Elements;
 use crate::mesh::{PatchSet, NONE};
@@ -31,10 +31,6 @@ fn key(p: DVec3) -> [u64; 3] {
     [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()]
 }
 
-/// Output position of a point (the patch set's vertex type).
-fn out(p: DVec3) -> Vec3 {
-    p.as_vec3()
-}
 
 /// The leaves of `e` as a patch set (patch `k` is leaf `leaves[k]`), with materials,
 /// faces and scale copied from the root patch set, and the radiosity of each.
@@ -88,8 +84,8 @@ pub fn leaf_mesh(
         let root = e.root[li] as usize;
         set.corners.push(corner_ids[k]);
         set.area.push(if e.buried[li] { 0.0 } else { e.area[li] });
-        set.normal.push(out(e.normal[li]));
-        set.centroid.push(out(e.centre[li]));
+        set.normal.push(e.normal[li]);
+        set.centroid.push(e.centre[li]);
         set.material.push(roots.material[root]);
         set.face.push(roots.face[root]);
         values.push(b[li]);
@@ -111,7 +107,7 @@ pub fn leaf_mesh(
             }
         }
     }
-    set.vertices = vertices.into_iter().map(out).collect();
+    set.vertices = vertices;
     (set, values, leaves)
 }
 

@@ -314,7 +314,7 @@ fn visible_fraction(ctx: &Context, r: u32, s: u32) -> (f64, u64) {
         weights.push(cx * cy / (r2 * r2) * jx * jy);
         segs.push(
             ctx.vis
-                .segment_ray(x.as_vec3(), nr.as_vec3(), y.as_vec3(), ns.as_vec3()),
+                .segment_ray(x, nr, y, ns),
         );
     }
     if segs.is_empty() {

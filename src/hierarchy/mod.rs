@@ -234,11 +234,15 @@ pub fn run(
     let contacts = refine::contacts(&e, 1e-6 * diag);
     report.contact_splits = refine::split_along_contacts(&mut e, &contacts, min_area, tol);
     let normals: Vec<glam::DVec3> = e.normal[..e.roots].to_vec();
-    let leaves: Vec<u32> = e.leaves().collect();
-    let (_, bury_rays) = refine::bury(&mut e, &leaves, vis, &normals, s.seed);
-    report.rays += bury_rays;
-
     let blockers = Blockers::new(&e, diag);
+    // Nothing is buried where nothing can block (a convex room has no solids inside).
+    let solids = !blockers.is_empty();
+    if solids {
+        let leaves: Vec<u32> = e.leaves().collect();
+        let (_, bury_rays) = refine::bury(&mut e, &leaves, vis, &normals, s.seed);
+        report.rays += bury_rays;
+    }
+
     // Radiosity starts at the emission; the mean from the furnace estimate.
     let mut state = State::default();
     let (rho, emit) = materials(&e, &material);
@@ -514,8 +518,10 @@ fn refine_links(
                 new_leaves.extend(kids);
             }
         }
-        let (_, bury_rays) = refine::bury(e, &new_leaves, vis, normals, s.seed);
-        report.rays += bury_rays;
+        if !blockers.is_empty() {
+            let (_, bury_rays) = refine::bury(e, &new_leaves, vis, normals, s.seed);
+            report.rays += bury_rays;
+        }
         links.resize(e.len(), Vec::new());
         // The replacements, and the replaced links removed.
         let mut specs = Vec::with_capacity(4 * decisions.len());

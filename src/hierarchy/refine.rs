@@ -241,7 +241,7 @@ pub fn bury(
                 let (x, _) = e.point(el, rng.next_f64(), rng.next_f64());
                 let d = cosine_direction(rng.next_f64(), rng.next_f64()).as_dvec3();
                 let dir = (t * d.x + b * d.y + n * d.z).normalize();
-                match vis.first_hit(x.as_vec3(), n.as_vec3(), dir.as_vec3()) {
+                match vis.first_hit(x, n, dir) {
                     Some(h) => normals[h.patch as usize].dot(dir) > 0.0,
                     None => false,
                 }
