@@ -459,7 +459,9 @@ fn bake(args: &BakeArgs) -> Result<()> {
         }
     };
     let resolution = match hierarchy {
-        Some(_) => args.mesh.resolution_or(Resolution::DiagonalFraction(0.25))?,
+        Some(_) => args
+            .mesh
+            .resolution_or(Resolution::DiagonalFraction(0.25))?,
         None => args.mesh.resolution()?,
     };
     let cfg = BakeConfig {

@@ -9,10 +9,10 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use crate::error::{Error, Result};
-use crate::hierarchy;
 use crate::formfactor::{
     self, AreaMc, Context, Estimator, Hemicube, Hemisphere, Nodes, Pattern, SemiAnalytic,
 };
+use crate::hierarchy;
 use crate::matrix::{Diagnostics, FormFactors};
 use crate::mesh::{PatchSet, Resolution};
 use crate::output::{self, Exposure};
@@ -693,8 +693,8 @@ fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
     );
     let _ = writeln!(
         o,
-        "  links: {} ({} partly visible; {} between roots at the start), {} rays, {} point-factor evaluations, Embree {}",
-        h.links, h.partial_links, h.initial_links, h.rays, h.evals, s.embree
+        "  links: {} ({} partly visible; {} between roots at the start), leaf gather entries {}, {} rays, {} point-factor evaluations, Embree {}",
+        h.links, h.partial_links, h.initial_links, h.gather, h.rays, h.evals, s.embree
     );
     for (k, p) in h.passes.iter().enumerate() {
         let _ = writeln!(

@@ -21,7 +21,12 @@ fn leaf_factor_sums(sol: &Solution) -> Vec<(u32, f64)> {
     for p in 0..e.len() {
         let own: f64 = sol.links[p].iter().map(|l| l.f).sum();
         let parent = e.parent[p];
-        down[p] = own + if parent == u32::MAX { 0.0 } else { down[parent as usize] };
+        down[p] = own
+            + if parent == u32::MAX {
+                0.0
+            } else {
+                down[parent as usize]
+            };
     }
     e.leaves().map(|l| (l, down[l as usize])).collect()
 }
@@ -54,4 +59,3 @@ fn closed_cube_links_sum_to_one_and_the_furnace_holds() {
         assert!(rel < 1e-6, "power balance {rel:e}");
     }
 }
-

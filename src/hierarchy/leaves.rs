@@ -31,7 +31,6 @@ fn key(p: DVec3) -> [u64; 3] {
     [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()]
 }
 
-
 /// The leaves of `e` as a patch set (patch `k` is leaf `leaves[k]`), with materials,
 /// faces and scale copied from the root patch set, and the radiosity of each.
 pub fn leaf_mesh(

@@ -32,7 +32,6 @@
 use glam::DVec3;
 
 use super::element::Elements;
-use crate::analytic::point_to_polygon_unit;
 use crate::formfactor::exact::{self, Emitter, Receiver};
 use crate::mesh::PatchSet;
 use crate::sampling::Pcg32;
@@ -52,6 +51,8 @@ pub struct Link {
     pub df: f64,
     /// True when some but not all visibility rays were blocked.
     pub partial: bool,
+    /// The visible fraction `v` (1 when unoccluded): `f` is the unoccluded factor times it.
+    pub vis: f64,
 }
 
 /// What evaluating a candidate link costs and finds.
@@ -257,6 +258,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, f_tol: f64) -> (Option<Link>, Cos
             err: q_err,
             df: (fmax - fmin) + q_err,
             partial: false,
+            vis: 1.0,
         };
         return (Some(link), cost);
     }
@@ -273,8 +275,36 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, f_tol: f64) -> (Option<Link>, Cos
         err: q_err + f_open * (v * (1.0 - v) / n).sqrt(),
         df: if partial { fmax } else { fmax - fmin } + q_err,
         partial,
+        vis: v,
     };
     (Some(link), cost)
+}
+
+/// The unoccluded factor `F(l → P_s)` from element `l` to the polygon of element `s`,
+/// `1/A_l ∫_l F(x → P_s) dA_x`, to the relative tolerance [`Context::quadrature`] or the
+/// absolute tolerance `f_tol`, and the point-factor evaluations spent.
+pub fn open_factor(ctx: &Context, l: u32, s: u32, f_tol: f64) -> (f64, u64) {
+    let e = ctx.elements;
+    let (li, si) = (l as usize, s as usize);
+    if range((e.normal[li], e.centre[li]), e.corners(s)).1 <= ctx.tol
+        || range((e.normal[si], e.centre[si]), e.corners(l)).1 <= ctx.tol
+    {
+        return (0.0, 0);
+    }
+    let receiver = Receiver {
+        poly: e.corners(s),
+        normal: e.normal[si],
+        centroid: e.centre[si],
+    };
+    let area = e.area[li];
+    let i = exact::integrate(
+        &mut Emitter::new(e.piece[li]),
+        e.normal[li],
+        &receiver,
+        ctx.quadrature,
+        f_tol.max(1e-15) * area,
+    );
+    ((i.value / area).max(0.0), i.evals)
 }
 
 /// Kernel-weighted visible fraction between `r` and `s` from `rays²` traced segments, and
@@ -312,10 +342,7 @@ fn visible_fraction(ctx: &Context, r: u32, s: u32) -> (f64, u64) {
             continue;
         }
         weights.push(cx * cy / (r2 * r2) * jx * jy);
-        segs.push(
-            ctx.vis
-                .segment_ray(x, nr, y, ns),
-        );
+        segs.push(ctx.vis.segment_ray(x, nr, y, ns));
     }
     if segs.is_empty() {
         return (0.0, 0);
@@ -336,16 +363,6 @@ fn visible_fraction(ctx: &Context, r: u32, s: u32) -> (f64, u64) {
     // All free: exactly visible (the ratio is 1 up to rounding).
     let v = if any_blocked { v.min(1.0 - 1e-12) } else { 1.0 };
     (v, segs.len() as u64)
-}
-
-/// Point-to-polygon factor from `x` (unit normal `n`) to the polygon of element `s`,
-/// one-sided: 0 when `x` is behind `s`.
-pub fn point_factor(e: &Elements, x: DVec3, n: DVec3, s: u32) -> f64 {
-    let si = s as usize;
-    if e.normal[si].dot(x - e.centre[si]) <= 0.0 {
-        return 0.0;
-    }
-    point_to_polygon_unit(x, n, e.corners(s))
 }
 
 #[cfg(test)]

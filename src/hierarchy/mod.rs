@@ -45,7 +45,7 @@ use crate::visibility::Visibility;
 use element::Elements;
 use link::{Blockers, Context, Cost, Link};
 use refine::{Decision, Oracle};
-use solve::{Materials, SolveStats, State};
+use solve::{Gather, Materials, SolveStats, State};
 
 /// Settings of a hierarchical solution.
 #[derive(Clone, Debug, PartialEq)]
@@ -166,6 +166,8 @@ pub struct Report {
     pub partial_links: usize,
     /// Initial links between roots.
     pub initial_links: usize,
+    /// Entries of the leaves' gather lists (their ancestor chains' links).
+    pub gather: usize,
     /// Rays cast in all.
     pub rays: u64,
     /// Point-to-polygon evaluations in all.
@@ -305,18 +307,47 @@ pub fn run(
         let refine_seconds = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
         let (rho, emit) = materials(&e, &material);
-        let stats = solve::solve(
-            &e,
-            &links,
-            &Materials {
-                rho: &rho,
-                emit: &emit,
-            },
-            &mut state,
-            b_ref,
-            s.tolerance,
-            s.max_iterations,
-        );
+        let m = Materials {
+            rho: &rho,
+            emit: &emit,
+        };
+        // HSA's push-pull while the hierarchy still changes; the leaves gather over their
+        // ancestor chains once it is final (or the passes run out).
+        let last = (refined == 0 && pass_no > 0) || pass_no + 1 == s.max_passes.max(1);
+        let stats = if last {
+            let ctx = Context {
+                elements: &e,
+                patches,
+                vis,
+                blockers: &blockers,
+                seed: s.seed,
+                rays: s.rays,
+                quadrature: s.quadrature,
+                tol,
+            };
+            let (gather, evals) = gather_lists(&ctx, &links, &rho, &state.b, s.accuracy * eps);
+            report.evals += evals;
+            report.gather = gather.len();
+            solve::solve(
+                &e,
+                &gather,
+                &m,
+                &mut state,
+                b_ref,
+                s.tolerance,
+                s.max_iterations,
+            )
+        } else {
+            solve::solve_push(
+                &e,
+                &links,
+                &m,
+                &mut state,
+                b_ref,
+                s.tolerance,
+                s.max_iterations,
+            )
+        };
         b_ref = mean_radiosity(&e, &state).max(f64::MIN_POSITIVE);
         let pass = Pass {
             refined,
@@ -442,6 +473,72 @@ fn evaluate_into(
         }
     }
     cost
+}
+
+/// The leaves' gather lists: for each leaf, its own links as they are, and for every link
+/// `a ← s` of an ancestor `a`, the leaf's own unoccluded factor to `s` times the link's
+/// visible fraction (discounted for buried parts of `a`); see [`solve`]. `budget` sets the
+/// absolute tolerance of each factor as in [`factor_tolerances`]. Returns the lists and the
+/// point-factor evaluations spent.
+fn gather_lists(
+    ctx: &Context,
+    links: &[Vec<Link>],
+    rho: &[[f64; 3]],
+    b: &[[f64; 3]],
+    budget: f64,
+) -> (Gather, u64) {
+    let e = ctx.elements;
+    let vis = e.visible_areas();
+    let leaves: Vec<u32> = e.leaves().collect();
+    let per_leaf: Vec<(Vec<(u32, f64)>, u64)> = leaves
+        .par_iter()
+        .map(|&l| {
+            let mut out: Vec<(u32, f64)> = Vec::new();
+            let mut evals = 0u64;
+            if e.buried[l as usize] {
+                return (out, 0);
+            }
+            out.extend(links[l as usize].iter().map(|k| (k.src, k.f)));
+            let mut a = e.parent[l as usize];
+            while a != element::NONE {
+                let ai = a as usize;
+                let discount = if vis[ai] > 0.0 {
+                    e.area[ai] / vis[ai]
+                } else {
+                    1.0
+                };
+                for k in &links[ai] {
+                    let w = (0..3)
+                        .map(|c| rho[l as usize][c] * b[k.src as usize][c])
+                        .fold(0.0, f64::max);
+                    let f_tol = if w > 0.0 { budget / w } else { f64::INFINITY };
+                    let (f, n) = link::open_factor(ctx, l, k.src, f_tol);
+                    evals += n;
+                    if f > 0.0 {
+                        out.push((k.src, f * (k.vis * discount).min(1.0)));
+                    }
+                }
+                a = e.parent[ai];
+            }
+            (out, evals)
+        })
+        .collect();
+    let mut g = Gather {
+        leaves,
+        start: Vec::with_capacity(per_leaf.len() + 1),
+        ..Default::default()
+    };
+    let mut evals = 0;
+    g.start.push(0);
+    for (list, n) in per_leaf {
+        evals += n;
+        for (s, f) in list {
+            g.src.push(s);
+            g.f.push(f);
+        }
+        g.start.push(g.src.len());
+    }
+    (g, evals)
 }
 
 /// Refines links until none needs it (or the link cap); returns the number replaced.

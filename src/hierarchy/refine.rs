@@ -313,6 +313,7 @@ mod tests {
             err: 0.0,
             df: 0.2,
             partial: false,
+            vis: 1.0,
         };
         let o = Oracle {
             elements: &e,
