@@ -711,6 +711,11 @@ fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
             p.solve_seconds
         );
     }
+    let _ = writeln!(
+        o,
+        "  leaf factor sums: largest {:.6} (bar {:.1e}); {} leaves over 1 beyond 3 bars",
+        h.max_row_sum.0, h.max_row_sum.1, h.rows_over_one
+    );
     let lum = |c: [f64; 3]| 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
     let (em, ab) = (lum(h.emitted), lum(h.absorbed));
     let _ = writeln!(

@@ -168,6 +168,11 @@ pub struct Report {
     pub initial_links: usize,
     /// Entries of the leaves' gather lists (their ancestor chains' links).
     pub gather: usize,
+    /// Largest factor sum of a visible leaf (its gather list), and that sum's error bar.
+    pub max_row_sum: (f64, f64),
+    /// Visible leaves whose factor sum exceeds 1 by more than 3 of its error bars (the
+    /// bars add linearly: quadrature bounds and the links' visibility errors).
+    pub rows_over_one: usize,
     /// Rays cast in all.
     pub rays: u64,
     /// Point-to-polygon evaluations in all.
@@ -328,15 +333,17 @@ pub fn run(
             let (gather, evals) = gather_lists(&ctx, &links, &rho, &state.b, s.accuracy * eps);
             report.evals += evals;
             report.gather = gather.len();
-            solve::solve(
-                &e,
-                &gather,
-                &m,
-                &mut state,
-                b_ref,
-                s.tolerance,
-                s.max_iterations,
-            )
+            report.max_row_sum = (0.0, 0.0);
+            report.rows_over_one = 0;
+            for &(sum, bar) in &gather.row_sum {
+                if sum > report.max_row_sum.0 {
+                    report.max_row_sum = (sum, bar);
+                }
+                if sum > 1.0 + 3.0 * bar {
+                    report.rows_over_one += 1;
+                }
+            }
+            solve::solve(&e, &gather, &m, &mut state, b_ref, s.tolerance, s.max_iterations)
         } else {
             solve::solve_push(
                 &e,
@@ -490,15 +497,15 @@ fn gather_lists(
     let e = ctx.elements;
     let vis = e.visible_areas();
     let leaves: Vec<u32> = e.leaves().collect();
-    let per_leaf: Vec<(Vec<(u32, f64)>, u64)> = leaves
+    let per_leaf: Vec<(Vec<(u32, f64, f64)>, u64)> = leaves
         .par_iter()
         .map(|&l| {
-            let mut out: Vec<(u32, f64)> = Vec::new();
+            let mut out: Vec<(u32, f64, f64)> = Vec::new();
             let mut evals = 0u64;
             if e.buried[l as usize] {
                 return (out, 0);
             }
-            out.extend(links[l as usize].iter().map(|k| (k.src, k.f)));
+            out.extend(links[l as usize].iter().map(|k| (k.src, k.f, k.err)));
             let mut a = e.parent[l as usize];
             while a != element::NONE {
                 let ai = a as usize;
@@ -515,7 +522,14 @@ fn gather_lists(
                     let (f, n) = link::open_factor(ctx, l, k.src, f_tol);
                     evals += n;
                     if f > 0.0 {
-                        out.push((k.src, f * (k.vis * discount).min(1.0)));
+                        // The link's relative error carries over to the leaf's factor; a
+                        // partly visible link says nothing of where in `a` the shadow
+                        // falls, so the leaf's visible fraction is bounded only by 0 and 1.
+                        let rel = if k.f > 0.0 { k.err / k.f } else { 0.0 };
+                        let v = (k.vis * discount).min(1.0);
+                        let fl = f * v;
+                        let shadow = if k.partial { f * v.max(1.0 - v) } else { 0.0 };
+                        out.push((k.src, fl, fl * rel + shadow + f_tol.min(ctx.quadrature * f)));
                     }
                 }
                 a = e.parent[ai];
@@ -532,11 +546,15 @@ fn gather_lists(
     g.start.push(0);
     for (list, n) in per_leaf {
         evals += n;
-        for (s, f) in list {
+        let (mut sum, mut bar) = (0.0, 0.0);
+        for (s, f, err) in list {
             g.src.push(s);
             g.f.push(f);
+            sum += f;
+            bar += err;
         }
         g.start.push(g.src.len());
+        g.row_sum.push((sum, bar));
     }
     (g, evals)
 }

@@ -74,6 +74,8 @@ pub struct Gather {
     pub src: Vec<u32>,
     /// Factor of each entry (leaf to source, visibility included).
     pub f: Vec<f64>,
+    /// Per leaf: the sum of its factors and the sum of their error bars.
+    pub row_sum: Vec<(f64, f64)>,
 }
 
 impl Gather {
