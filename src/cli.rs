@@ -41,8 +41,31 @@ enum Command {
     /// Compare the solvers: residual against work and time on the closed cube (rho 0.5 to
     /// 0.999) and the Cornell box; CSV and charts.
     StudySolvers(StudySolversArgs),
+    /// Hierarchical against uniform bakes of the Cornell box, scored against a path-traced
+    /// reference: CSV and error-vs-CPU-time and error-vs-rays charts.
+    StudyBakes(StudyBakesArgs),
     /// Measure: form-factor stage vs raw Embree rays/s, time and memory per stage, scaling.
     Bench(BenchArgs),
+}
+
+#[derive(Args, Debug)]
+struct StudyBakesArgs {
+    /// Output folder.
+    #[arg(short, long, default_value = "docs/hierarchy")]
+    output: PathBuf,
+    /// Reference table (face averages and probe points).
+    #[arg(long, default_value = "docs/reference/cornell-mitsuba.csv")]
+    reference: PathBuf,
+    /// Patch counts of the uniform bakes.
+    #[arg(long, value_delimiter = ',', default_value = "500,1000,2000,4000")]
+    flat: Vec<usize>,
+    /// Link tolerances of the hierarchical bakes.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "0.04,0.02,0.01,0.005,0.0025"
+    )]
+    errors: Vec<f64>,
 }
 
 #[derive(Args, Debug)]
@@ -506,6 +529,50 @@ fn bake(args: &BakeArgs) -> Result<()> {
     Ok(())
 }
 
+fn study_bakes(args: &StudyBakesArgs) -> Result<()> {
+    use radiosity::study::bakes;
+    let settings = bakes::Settings {
+        reference: args.reference.clone(),
+        flat: args.flat.clone(),
+        errors: args.errors.clone(),
+        ..bakes::Settings::full(args.output.clone())
+    };
+    let (runs, refs) = bakes::run(&settings)?;
+    println!(
+        "{:<13} {:>9} {:>8} {:>8} {:>10} {:>8} {:>8} {:>9} {:>9} {:>9}",
+        "method",
+        "parameter",
+        "patches",
+        "links",
+        "rays",
+        "cpu s",
+        "wall s",
+        "faces",
+        "contact",
+        "shadow"
+    );
+    for r in &runs {
+        let (m, p) = match r.method {
+            bakes::BakeKind::Flat(n) => ("uniform", format!("{n}")),
+            bakes::BakeKind::Hierarchical(e) => ("hierarchical", format!("{e}")),
+        };
+        let pct = |x: Option<f64>| x.map_or("-".to_string(), |v| format!("{:.2}%", 100.0 * v));
+        println!(
+            "{m:<13} {p:>9} {:>8} {:>8} {:>10} {:>8.2} {:>8.2} {:>9} {:>9} {:>9}",
+            r.patches,
+            r.links,
+            r.rays,
+            r.cpu,
+            r.wall,
+            pct(Some(r.face_max)),
+            pct(bakes::group_max(r, &refs, "contact")),
+            pct(bakes::group_max(r, &refs, "shadow"))
+        );
+    }
+    println!("wrote {}/bakes.csv and charts", args.output.display());
+    Ok(())
+}
+
 fn study_solvers(args: &StudySolversArgs) -> Result<()> {
     let settings = if args.quick {
         radiosity::study::solvers::Settings::quick(args.output.clone())
@@ -590,6 +657,7 @@ pub fn run() -> Result<()> {
             })
         }
         Command::StudySolvers(args) => study_solvers(args),
+        Command::StudyBakes(args) => study_bakes(args),
         Command::Study(args) => {
             if let Some(n) = args.threads {
                 if n == 0 {

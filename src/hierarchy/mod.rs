@@ -343,7 +343,15 @@ pub fn run(
                     report.rows_over_one += 1;
                 }
             }
-            solve::solve(&e, &gather, &m, &mut state, b_ref, s.tolerance, s.max_iterations)
+            solve::solve(
+                &e,
+                &gather,
+                &m,
+                &mut state,
+                b_ref,
+                s.tolerance,
+                s.max_iterations,
+            )
         } else {
             solve::solve_push(
                 &e,

@@ -16,6 +16,7 @@
 //! The solver study ([`solvers`], `radiosity study-solvers`) lives here too: both studies
 //! drive the pipeline and write files, so they sit downstream of every stage.
 
+pub mod bakes;
 pub mod configs;
 pub mod solvers;
 

@@ -1,0 +1,420 @@
+//! The bake study: hierarchical against uniform bakes of one scene, scored against an
+//! independent reference, error against CPU time and against rays.
+//!
+//! The reference is a table (`docs/reference/cornell-mitsuba.csv`, made by
+//! `scripts/reference/mitsuba_cornell.py` with Mitsuba 3's path tracer; see
+//! `docs/reference/README.md`) of face-averaged radiosities, one row per OBJ face
+//! (`kind = face`, `id` its 0-based index in file order), and radiosities at probe points
+//! (`kind = point`, position and normal), each with a standard error. A bake is scored the
+//! way a user sees it:
+//!
+//! - **face averages** from the solved patches or leaves (area-weighted, buried leaves
+//!   excluded), against the reference's faces;
+//! - **points** from the per-vertex output mesh (the EXR/PLY values), interpolated
+//!   barycentrically in the triangle that holds the point.
+//!
+//! Errors are relative, on Rec. 709 luminance. Each run's CPU time is the process's user
+//! plus system time over the run (all threads), read from `/proc/self/stat`.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+
+use crate::error::{Error, Result};
+use crate::hierarchy::{self, leaves::leaf_mesh};
+use crate::mesh::{PatchSet, Resolution};
+use crate::output::chart::{chart, Mark, Series, Spec};
+use crate::output::{interpolate, write_atomic, VertexRadiosity};
+use crate::pipeline::{self, Quiet};
+use crate::scene::Scene;
+use crate::solve::{Method, Options};
+use crate::visibility::Visibility;
+
+/// One reference value.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Probe {
+    /// `face` or `point`.
+    pub kind: String,
+    /// Face index, or the point's name.
+    pub id: String,
+    /// Position (points).
+    pub p: DVec3,
+    /// Unit normal (points).
+    pub n: DVec3,
+    /// Reference radiosity per channel.
+    pub b: [f64; 3],
+    /// Its standard error.
+    pub se: [f64; 3],
+    /// What the probe is for (free text: contact, shadow, control...).
+    pub note: String,
+}
+
+/// Rec. 709 luminance.
+pub fn luminance(c: [f64; 3]) -> f64 {
+    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+}
+
+/// Reads a reference table (see the module docs): comma-separated, a header naming at
+/// least `kind,id,x,y,z,nx,ny,nz,B_r,B_g,B_b,se_r,se_g,se_b`, and optionally `note`.
+pub fn read_reference(path: &Path) -> Result<Vec<Probe>> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let bad = |line: usize, msg: String| Error::Output {
+        path: path.to_path_buf(),
+        msg: format!("line {line}: {msg}"),
+    };
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty());
+    let (_, header) = lines.next().ok_or_else(|| bad(1, "empty file".into()))?;
+    let cols: Vec<&str> = header.split(',').map(str::trim).collect();
+    let col = |name: &str| cols.iter().position(|&c| c == name);
+    let need = |name: &str| col(name).ok_or_else(|| bad(1, format!("no column `{name}`")));
+    let idx: Vec<usize> = [
+        "x", "y", "z", "nx", "ny", "nz", "B_r", "B_g", "B_b", "se_r", "se_g", "se_b",
+    ]
+    .iter()
+    .map(|n| need(n))
+    .collect::<Result<_>>()?;
+    let (kind, id, note) = (need("kind")?, need("id")?, col("note"));
+    let mut out = Vec::new();
+    for (k, line) in lines {
+        let f: Vec<&str> = line.split(',').map(str::trim).collect();
+        let num = |c: usize| -> Result<f64> {
+            let v = f.get(c).copied().unwrap_or("");
+            if v.is_empty() {
+                return Ok(0.0);
+            }
+            v.parse::<f64>()
+                .ok()
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| {
+                    bad(
+                        k + 1,
+                        format!("`{v}` in column {} is not a number", cols[c]),
+                    )
+                })
+        };
+        let v: Vec<f64> = idx.iter().map(|&c| num(c)).collect::<Result<_>>()?;
+        out.push(Probe {
+            kind: f.get(kind).unwrap_or(&"").to_string(),
+            id: f.get(id).unwrap_or(&"").to_string(),
+            p: DVec3::new(v[0], v[1], v[2]),
+            n: DVec3::new(v[3], v[4], v[5]).normalize_or_zero(),
+            b: [v[6], v[7], v[8]],
+            se: [v[9], v[10], v[11]],
+            note: note
+                .and_then(|c| f.get(c))
+                .map(|s| s.to_string())
+                .unwrap_or_default(),
+        });
+    }
+    Ok(out)
+}
+
+/// Area-weighted mean radiosity of each scene face (index = face), from patches (or
+/// leaves) `set` with values `b`; zero-area patches (buried leaves) carry no weight.
+pub fn face_averages(set: &PatchSet, b: &[[f64; 3]], faces: usize) -> Vec<Option<[f64; 3]>> {
+    let mut sum = vec![[0.0; 3]; faces];
+    let mut area = vec![0.0; faces];
+    for (k, &f) in set.face.iter().enumerate() {
+        let (f, a) = (f as usize, set.area[k]);
+        if f < faces && a > 0.0 {
+            for c in 0..3 {
+                sum[f][c] += a * b[k][c];
+            }
+            area[f] += a;
+        }
+    }
+    (0..faces)
+        .map(|f| (area[f] > 0.0).then(|| sum[f].map(|s| s / area[f])))
+        .collect()
+}
+
+/// The output mesh's radiosity at `p` on a surface facing `n`: barycentric interpolation
+/// in the first triangle facing `n` (within 25°) whose plane passes within `tol` of `p`
+/// and that holds `p`'s projection.
+pub fn probe(v: &VertexRadiosity, p: DVec3, n: DVec3, tol: f64) -> Option<[f64; 3]> {
+    for t in &v.triangles {
+        let [a, b, c] = t.map(|k| v.positions[k as usize].as_dvec3());
+        let m = (b - a).cross(c - a);
+        let len = m.length();
+        if len == 0.0 || m.dot(n) < 0.9 * len {
+            continue;
+        }
+        let m = m / len;
+        if m.dot(p - a).abs() > tol {
+            continue;
+        }
+        // Barycentric coordinates of the projection.
+        let q = p - m * m.dot(p - a);
+        let area = len;
+        let wa = (b - q).cross(c - q).dot(m) / area;
+        let wb = (c - q).cross(a - q).dot(m) / area;
+        let wc = 1.0 - wa - wb;
+        let eps = -1e-9;
+        if wa >= eps && wb >= eps && wc >= eps {
+            let [ra, rb, rc] = t.map(|k| v.rgb[k as usize]);
+            return Some(std::array::from_fn(|k| {
+                wa * f64::from(ra[k]) + wb * f64::from(rb[k]) + wc * f64::from(rc[k])
+            }));
+        }
+    }
+    None
+}
+
+/// How a bake of the study was made.
+#[derive(Clone, Debug, PartialEq)]
+pub enum BakeKind {
+    /// Uniform patches, the default semi-analytic factors, Gauss–Seidel.
+    Flat(usize),
+    /// Hierarchical at this link tolerance.
+    Hierarchical(f64),
+}
+
+/// One scored bake.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Run {
+    /// What was run.
+    pub method: BakeKind,
+    /// Patches (flat) or leaves (hierarchical).
+    pub patches: usize,
+    /// Links (hierarchical; 0 for flat).
+    pub links: usize,
+    /// Rays cast.
+    pub rays: u64,
+    /// CPU seconds (user + system, all threads).
+    pub cpu: f64,
+    /// Wall seconds.
+    pub wall: f64,
+    /// Largest relative error of a face average.
+    pub face_max: f64,
+    /// Relative error of each probe point (in reference order), `None` where no triangle
+    /// held it.
+    pub points: Vec<Option<f64>>,
+}
+
+/// CPU seconds of this process so far (user + system, every thread), from
+/// `/proc/self/stat` (fields 14 and 15, in clock ticks of 1/100 s).
+pub fn cpu_seconds() -> f64 {
+    std::fs::read_to_string("/proc/self/stat")
+        .ok()
+        .and_then(|s| {
+            let rest = s.rsplit_once(')')?.1;
+            let f: Vec<&str> = rest.split_whitespace().collect();
+            let u: f64 = f.get(11)?.parse().ok()?;
+            let k: f64 = f.get(12)?.parse().ok()?;
+            Some((u + k) / 100.0)
+        })
+        .unwrap_or(0.0)
+}
+
+/// Scores one bake against the reference.
+fn score(
+    refs: &[Probe],
+    set: &PatchSet,
+    b: &[[f64; 3]],
+    verts: &VertexRadiosity,
+    faces: usize,
+    diag: f64,
+) -> (f64, Vec<Option<f64>>) {
+    let avg = face_averages(set, b, faces);
+    let mut face_max = 0.0f64;
+    let mut points = Vec::new();
+    for r in refs {
+        let want = luminance(r.b);
+        if r.kind == "face" {
+            if let Some(Some(got)) = r.id.parse::<usize>().ok().and_then(|f| avg.get(f)) {
+                face_max = face_max.max((luminance(*got) - want).abs() / want);
+            }
+        } else if r.kind == "point" {
+            points.push(
+                probe(verts, r.p, r.n, 1e-4 * diag).map(|g| (luminance(g) - want).abs() / want),
+            );
+        }
+    }
+    (face_max, points)
+}
+
+/// What to run.
+#[derive(Clone, Debug)]
+pub struct Settings {
+    /// Scene (built-in name or OBJ path).
+    pub scene: String,
+    /// Reference table.
+    pub reference: PathBuf,
+    /// Patch counts of the uniform bakes.
+    pub flat: Vec<usize>,
+    /// Link tolerances of the hierarchical bakes.
+    pub errors: Vec<f64>,
+    /// Output folder.
+    pub out: PathBuf,
+}
+
+impl Settings {
+    /// The full study: uniform bakes of 500 to 4000 patches, hierarchical from 4% to 0.25%.
+    pub fn full(out: PathBuf) -> Settings {
+        Settings {
+            scene: "cornell".into(),
+            reference: PathBuf::from("docs/reference/cornell-mitsuba.csv"),
+            flat: vec![500, 1000, 2000, 4000],
+            errors: vec![0.04, 0.02, 0.01, 0.005, 0.0025],
+            out,
+        }
+    }
+}
+
+/// Runs the study, writes `bakes.csv` and the charts into `s.out`, and returns the runs
+/// with the reference probes.
+pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
+    let refs = read_reference(&s.reference)?;
+    let scene = Scene::load(&s.scene)?;
+    let faces = scene.faces.len();
+    let mut runs = Vec::new();
+    for &n in &s.flat {
+        let (c0, t0) = (cpu_seconds(), std::time::Instant::now());
+        let patches = PatchSet::build(&scene, Resolution::Patches(n))?;
+        let est = pipeline::BakeConfig::default().estimator;
+        let (ff, _, _) = pipeline::form_factors(&patches, &est, 1, &Quiet)?;
+        let (b, _) =
+            pipeline::solve_radiosity(&patches, &ff, Method::GaussSeidel, &Options::default())?;
+        let verts = interpolate(&patches, &b, 30.0);
+        let (cpu, wall) = (cpu_seconds() - c0, t0.elapsed().as_secs_f64());
+        let (face_max, points) = score(&refs, &patches, &b, &verts, faces, patches.diagonal);
+        runs.push(Run {
+            method: BakeKind::Flat(n),
+            patches: patches.len(),
+            links: 0,
+            rays: ff.rays,
+            cpu,
+            wall,
+            face_max,
+            points,
+        });
+    }
+    for &err in &s.errors {
+        let (c0, t0) = (cpu_seconds(), std::time::Instant::now());
+        let patches = PatchSet::build(&scene, Resolution::DiagonalFraction(0.25))?;
+        let vis = Visibility::new(&patches)?;
+        let settings = hierarchy::Settings {
+            error: err,
+            ..Default::default()
+        };
+        let sol = hierarchy::run(&patches, &vis, &settings, &|_| {})?;
+        let (leaves, b, _) = leaf_mesh(&sol.elements, &patches, &sol.state.b);
+        let verts = interpolate(&leaves, &b, 30.0);
+        let (cpu, wall) = (cpu_seconds() - c0, t0.elapsed().as_secs_f64());
+        let (face_max, points) = score(&refs, &leaves, &b, &verts, faces, patches.diagonal);
+        runs.push(Run {
+            method: BakeKind::Hierarchical(err),
+            patches: sol.report.leaves,
+            links: sol.report.links,
+            rays: sol.report.rays,
+            cpu,
+            wall,
+            face_max,
+            points,
+        });
+    }
+    write(s, &runs, &refs)?;
+    Ok((runs, refs))
+}
+
+/// The probes whose note contains `word`.
+fn group<'a>(refs: &'a [Probe], word: &'a str) -> impl Iterator<Item = usize> + 'a {
+    refs.iter()
+        .filter(|r| r.kind == "point")
+        .enumerate()
+        .filter(move |(_, r)| r.note.contains(word) || r.id.contains(word))
+        .map(|(k, _)| k)
+}
+
+/// Largest error over the probes of group `word` (`None` if any is missing).
+pub fn group_max(run: &Run, refs: &[Probe], word: &str) -> Option<f64> {
+    let mut worst = 0.0f64;
+    for k in group(refs, word) {
+        worst = worst.max(run.points.get(k).copied().flatten()?);
+    }
+    Some(worst)
+}
+
+fn label(m: &BakeKind) -> (String, String) {
+    match m {
+        BakeKind::Flat(n) => ("uniform".into(), format!("{n}")),
+        BakeKind::Hierarchical(e) => ("hierarchical".into(), format!("{e}")),
+    }
+}
+
+fn write(s: &Settings, runs: &[Run], refs: &[Probe]) -> Result<()> {
+    std::fs::create_dir_all(&s.out).map_err(|e| Error::io(&s.out, e))?;
+    let mut csv = String::from(
+        "method,parameter,patches,links,rays,cpu_s,wall_s,face_max,contact_max,shadow_max,points_max\n",
+    );
+    let fmt = |x: Option<f64>| x.map_or("".into(), |v| format!("{v:.5}"));
+    for r in runs {
+        let (m, p) = label(&r.method);
+        let all = r
+            .points
+            .iter()
+            .flatten()
+            .copied()
+            .fold(None, |a: Option<f64>, b| Some(a.map_or(b, |a| a.max(b))));
+        let _ = writeln!(
+            csv,
+            "{m},{p},{},{},{},{:.3},{:.3},{:.5},{},{},{}",
+            r.patches,
+            r.links,
+            r.rays,
+            r.cpu,
+            r.wall,
+            r.face_max,
+            fmt(group_max(r, refs, "contact")),
+            fmt(group_max(r, refs, "shadow")),
+            fmt(all)
+        );
+    }
+    let path = s.out.join("bakes.csv");
+    write_atomic(&path, |tmp| {
+        std::fs::write(tmp, csv.as_bytes()).map_err(|e| Error::io(tmp, e))
+    })?;
+    for (word, what) in [
+        ("face", "largest face-average error"),
+        ("contact", "largest error 5-15 mm from the blocks"),
+        ("shadow", "largest error in the tall block's shadow"),
+    ] {
+        for (x_of, x_label, tag) in [(0, "CPU seconds", "cpu"), (1, "rays", "rays")] {
+            let mut series = Vec::new();
+            for kind in ["uniform", "hierarchical"] {
+                let pts: Vec<(f64, f64)> = runs
+                    .iter()
+                    .filter(|r| label(&r.method).0 == kind)
+                    .filter_map(|r| {
+                        let y = if word == "face" {
+                            Some(r.face_max)
+                        } else {
+                            group_max(r, refs, word)
+                        }?;
+                        let x = if x_of == 0 { r.cpu } else { r.rays as f64 };
+                        (x > 0.0 && y > 0.0).then_some((x, y))
+                    })
+                    .collect();
+                series.push(Series::new(kind, pts));
+            }
+            let title = format!("Cornell box: {what} vs {x_label} (reference: Mitsuba 3)");
+            chart(
+                &s.out.join(format!("{word}-vs-{tag}")),
+                &Spec {
+                    title: &title,
+                    x_label,
+                    y_label: "relative error (luminance)",
+                    log_x: true,
+                    log_y: true,
+                    mark: Mark::Line,
+                },
+                &series,
+            )?;
+        }
+    }
+    Ok(())
+}
