@@ -166,7 +166,7 @@ mod tests {
             }
         }
         // Boundary edges of the 2 x 1 rectangle: 1 use; all others: 2.
-        let boundary = |p: Vec3, q: Vec3| {
+        let boundary = |p: DVec3, q: DVec3| {
             (p.y == 0.0 && q.y == 0.0)
                 || (p.y == 1.0 && q.y == 1.0)
                 || (p.x == 0.0 && q.x == 0.0)

@@ -329,10 +329,10 @@ fn visible_fraction(ctx: &Context, r: u32, s: u32) -> (f64, u64) {
     let inv = 1.0 / n as f64;
     let mut segs: Vec<SegmentRay> = Vec::with_capacity(cells);
     let mut weights: Vec<f64> = Vec::with_capacity(cells);
-    for c in 0..cells {
+    for (c, &d) in perm.iter().enumerate() {
         let (a, b) = ((c % n) as f64, (c / n) as f64);
         let (x, jx) = e.point(r, (a + rng.next_f64()) * inv, (b + rng.next_f64()) * inv);
-        let d = perm[c] as usize;
+        let d = d as usize;
         let (a2, b2) = ((d % n) as f64, (d / n) as f64);
         let (y, jy) = e.point(s, (a2 + rng.next_f64()) * inv, (b2 + rng.next_f64()) * inv);
         let w = y - x;

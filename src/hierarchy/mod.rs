@@ -505,7 +505,9 @@ fn gather_lists(
     let e = ctx.elements;
     let vis = e.visible_areas();
     let leaves: Vec<u32> = e.leaves().collect();
-    let per_leaf: Vec<(Vec<(u32, f64, f64)>, u64)> = leaves
+    // Per leaf: (source, factor, error bar) entries and the evaluations spent.
+    type Entries = (Vec<(u32, f64, f64)>, u64);
+    let per_leaf: Vec<Entries> = leaves
         .par_iter()
         .map(|&l| {
             let mut out: Vec<(u32, f64, f64)> = Vec::new();

@@ -122,11 +122,10 @@ pub fn contacts(e: &Elements, tol: f64) -> Vec<Vec<Contact>> {
             let plane = (e.normal[r], e.centre[r]);
             let (lo, hi) = (boxes[r].0 - tol, boxes[r].1 + tol);
             let mut out = Vec::new();
-            for s in 0..n {
+            for (s, &(ls, hs)) in boxes.iter().enumerate() {
                 if s == r || e.normal[r].dot(e.normal[s]).abs() > 1.0 - 1e-9 {
                     continue;
                 }
-                let (ls, hs) = boxes[s];
                 if ls.cmpgt(hi).any() || hs.cmplt(lo).any() {
                     continue;
                 }

@@ -134,9 +134,8 @@ pub fn solve(
         for (k, &(b, h)) in new.iter().enumerate() {
             let l = g.leaves[k] as usize;
             if !e.buried[l] {
-                for c in 0..3 {
-                    let d = (b[c] - state.b[l][c]).abs() / b[c].abs().max(floor);
-                    change = change.max(d);
+                for (&new, &old) in b.iter().zip(&state.b[l]) {
+                    change = change.max((new - old).abs() / new.abs().max(floor));
                 }
             }
             state.b[l] = b;
@@ -219,9 +218,8 @@ pub fn solve_push(
                     std::array::from_fn(|c| m.emit[p][c] + m.rho[p][c] * h[c])
                 };
                 if !e.buried[p] {
-                    for c in 0..3 {
-                        let d = (new[c] - state.b[p][c]).abs() / new[c].abs().max(floor);
-                        change = change.max(d);
+                    for (&n, &old) in new.iter().zip(&state.b[p]) {
+                        change = change.max((n - old).abs() / n.abs().max(floor));
                     }
                 }
                 state.b[p] = new;
