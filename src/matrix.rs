@@ -414,7 +414,7 @@ impl FormFactors {
     pub fn row_sum(&self, i: usize) -> f64 {
         self.f
             .outer_view(i)
-            .map(|r| r.data().iter().sum())
+            .map(|r| r.data().iter().sum::<f64>() + 0.0)
             .unwrap_or(0.0)
     }
 
@@ -492,7 +492,8 @@ impl FormFactors {
             &self.f.data()[lo..hi],
             &self.se[lo..hi],
         );
-        let s: f64 = vals.iter().sum();
+        // `+ 0.0`: the sum of no terms is -0.0, printed `-0.00000` for an empty row.
+        let s: f64 = vals.iter().sum::<f64>() + 0.0;
         let mut d = Diagnostics {
             min_row_sum: s,
             max_row_sum: s,
@@ -591,6 +592,24 @@ mod tests {
         assert!((s0 - 1.0).abs() < 1e-15);
         assert_eq!(g.get(1, 2), Some(&0.5));
         assert!(repair_row_sums(&f, &[[0.5; 3]; 3]).is_none());
+    }
+
+    #[test]
+    fn an_empty_row_sums_to_positive_zero() {
+        let rows = vec![
+            vec![],
+            vec![Entry {
+                j: 0,
+                f: 0.5,
+                se: 0.0,
+            }],
+        ];
+        let ff = FormFactors::from_rows(rows, vec![1.0; 2], 0, 0.0, "test".into(), 0);
+        let d = ff.diagnostics();
+        assert_eq!(
+            format!("{:.5} {:.5}", d.min_row_sum, ff.row_sum(0)),
+            "0.00000 0.00000"
+        );
     }
 
     /// The diagnostics with a binary search per back entry, row by row: the reference for
