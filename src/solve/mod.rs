@@ -580,8 +580,32 @@ impl Gain {
         self.max() >= 1.0
     }
 
+    /// A bound on the condition number of `I - diag(rho) F` in the infinity norm, from the
+    /// gain `g` (`||A|| <= 1 + g`, `||A^-1|| <= 1 / (1 - g)`): `(1 + g) / (1 - g)`;
+    /// infinite when `g >= 1`.
+    pub(crate) fn condition_bound(&self) -> f64 {
+        let g = self.max();
+        if g < 1.0 {
+            (1.0 + g) / (1.0 - g)
+        } else {
+            f64::INFINITY
+        }
+    }
+
     /// The notes to put in a report before iterating.
     pub(crate) fn notes(&self) -> Vec<String> {
+        let cond = self.condition_bound();
+        if !self.suspicious() && cond > NEAR_SINGULAR {
+            return vec![format!(
+                "the system is near singular: rho * (row sum of F) reaches {:.7} at patch {} \
+                 (rho {:.7}), so its condition number may be up to {cond:.1e}; a relative \
+                 residual r bounds the relative error of B only by about {cond:.0e} x r \
+                 (lower --tolerance, or check reflectances this close to 1)",
+                self.max(),
+                self.patch,
+                self.rho
+            )];
+        }
         if self.suspicious() {
             vec![format!(
                 "rho * (row sum of F) reaches {:.4} at patch {} (row sum {:.4}, rho {:.3}): \
@@ -609,6 +633,10 @@ impl Gain {
         }
     }
 }
+
+/// Condition-number bound ([`Gain::condition_bound`]) above which a report notes that the
+/// system is near singular.
+pub(crate) const NEAR_SINGULAR: f64 = 1e5;
 
 /// True when a relative residual says the iteration is diverging.
 #[inline]
@@ -1154,6 +1182,28 @@ mod tests {
             // B_0 = 1 + 1.08 B_1, B_1 = 0.25 B_0.
             assert!((b[0][0] - 1.0 / (1.0 - 0.27)).abs() < 1e-10, "{method}");
         }
+    }
+
+    #[test]
+    fn near_singular_systems_are_noted() {
+        // A closed furnace at rho 0.999999: B = 1e6 exactly, condition number ~2e6. The CG
+        // and direct solvers reach the tolerance; the report must say what that is worth.
+        let owned = furnace(12, [0.999999; 3], [1.0; 3]);
+        for method in [Method::Cg, Method::Direct] {
+            let (_, report) = solve(method, &owned.sys(), &Options::default()).unwrap();
+            assert!(
+                report.notes.iter().any(|n| n.contains("near singular")),
+                "{method}: {:?}",
+                report.notes
+            );
+        }
+        let owned = furnace(12, [0.9; 3], [1.0; 3]);
+        let (_, report) = solve(Method::Cg, &owned.sys(), &Options::default()).unwrap();
+        assert!(
+            !report.notes.iter().any(|n| n.contains("near singular")),
+            "{:?}",
+            report.notes
+        );
     }
 
     #[test]
