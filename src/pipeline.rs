@@ -5,7 +5,7 @@
 //! [`Observer`] hears about stage starts, progress and ends (the CLI draws bars from it),
 //! and the returned [`BakeSummary`] carries times, peak memory and accuracy figures.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use crate::error::{Error, Result};
@@ -14,7 +14,7 @@ use crate::formfactor::{
 };
 use crate::matrix::{Diagnostics, FormFactors};
 use crate::mesh::{PatchSet, Resolution};
-use crate::output::{self, Exposure};
+use crate::output::{self, Exposure, FolderKind};
 use crate::repair::{self, Repair, RepairReport};
 use crate::scene::Scene;
 use crate::solve::{self, Method, Options, SolveReport, System};
@@ -336,6 +336,7 @@ pub fn write_step_previews(
     ff: &FormFactors,
     steps: &[usize],
     cfg: &BakeConfig,
+    dir: &Path,
     camera: &crate::scene::Camera,
     exposure: Exposure,
 ) -> Result<Vec<PathBuf>> {
@@ -349,7 +350,7 @@ pub fn write_step_previews(
         let verts = output::interpolate(patches, &b, cfg.crease_deg);
         let (w, h) = cfg.preview;
         let image = output::render_preview(&verts, camera, w, h, exposure);
-        let png = cfg.out_dir.join(format!("preview-step-{k:04}.png"));
+        let png = dir.join(format!("preview-step-{k:04}.png"));
         output::write_png(&png, &image)?;
         files.push(png);
     }
@@ -362,6 +363,7 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         obs,
         stages: Vec::new(),
     };
+    output::check_folder(&cfg.out_dir, FolderKind::Bake)?;
     let scene = timer.run("load", 0, || Scene::load(&cfg.scene))?;
     scene.require_emitter()?;
     let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
@@ -399,29 +401,39 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     let verts = timer.run("per-vertex", 0, || {
         output::interpolate(&patches, &b, cfg.crease_deg)
     });
-    std::fs::create_dir_all(&cfg.out_dir).map_err(|e| Error::io(&cfg.out_dir, e))?;
     let files = timer.run("write", 0, || -> Result<Vec<PathBuf>> {
-        let exr = cfg.out_dir.join("radiosity.exr");
-        output::write_exr(&exr, &verts, &scene.name)?;
-        let camera = scene.camera_or_framing();
-        let (w, h) = cfg.preview;
-        let image = output::render_preview(&verts, &camera, w, h, cfg.exposure);
-        let png = cfg.out_dir.join("preview.png");
-        output::write_png(&png, &image)?;
-        let ply = cfg.out_dir.join("mesh.ply");
-        output::write_ply(&ply, &verts, image.exposure)?;
-        let mut files = vec![exr, ply, png];
-        if !cfg.steps.is_empty() {
-            files.extend(write_step_previews(
-                &patches,
-                &ff,
-                &cfg.steps,
-                cfg,
-                &camera,
-                Exposure::Fixed(image.exposure),
-            )?);
-        }
-        Ok(files)
+        let names = output::write_folder(&cfg.out_dir, FolderKind::Bake, |dir| {
+            output::write_exr(&dir.join("radiosity.exr"), &verts, &scene.name)?;
+            let camera = scene.camera_or_framing();
+            let (w, h) = cfg.preview;
+            let image = output::render_preview(&verts, &camera, w, h, cfg.exposure);
+            output::write_png(&dir.join("preview.png"), &image)?;
+            output::write_ply(&dir.join("mesh.ply"), &verts, image.exposure)?;
+            let mut names: Vec<PathBuf> = vec![
+                "radiosity.exr".into(),
+                "mesh.ply".into(),
+                "preview.png".into(),
+            ];
+            if !cfg.steps.is_empty() {
+                let steps = write_step_previews(
+                    &patches,
+                    &ff,
+                    &cfg.steps,
+                    cfg,
+                    dir,
+                    &camera,
+                    Exposure::Fixed(image.exposure),
+                )?;
+                names.extend(
+                    steps
+                        .iter()
+                        .filter_map(|p| p.file_name())
+                        .map(PathBuf::from),
+                );
+            }
+            Ok(names)
+        })?;
+        Ok(names.iter().map(|n| cfg.out_dir.join(n)).collect())
     })?;
     Ok(BakeSummary {
         scene: scene.name.clone(),
@@ -471,6 +483,7 @@ pub fn factors(
         obs,
         stages: Vec::new(),
     };
+    output::check_folder(out_dir, FolderKind::Factors)?;
     let scene = timer.run("load", 0, || Scene::load(scene))?;
     let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
         let p = PatchSet::build(&scene, resolution)?;
