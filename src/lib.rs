@@ -31,6 +31,7 @@ pub mod analytic;
 pub mod bench;
 pub mod error;
 pub mod formfactor;
+pub mod input;
 pub mod matrix;
 pub mod mesh;
 pub mod output;

@@ -21,13 +21,18 @@ use glam::{DVec3, Vec3};
 
 use super::{Camera, Face, Material, Scene};
 use crate::error::{Error, Result};
+use crate::input::{read_text, MAX_TEXT_BYTES};
 
 /// Reflectance given to faces that use no material, with a warning.
 const DEFAULT_RHO: f64 = 0.5;
 
 /// Loads an OBJ file; `mtllib` files are looked up next to it.
+///
+/// Only regular files are read (a FIFO or a device is refused without being opened), up to
+/// [`MAX_TEXT_BYTES`]; a byte that is not UTF-8 is refused with its line unless it is in a
+/// comment.
 pub fn load_file(path: &Path) -> Result<Scene> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let text = read_text(path, MAX_TEXT_BYTES)?;
     let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
     let name = path
         .file_stem()
@@ -35,7 +40,7 @@ pub fn load_file(path: &Path) -> Result<Scene> {
         .unwrap_or_default();
     parse(&name, path, &text, &|lib: &str| {
         let p = dir.join(lib);
-        let t = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
+        let t = read_text(&p, MAX_TEXT_BYTES)?;
         Ok((p, t))
     })
 }
@@ -66,6 +71,15 @@ pub fn parse(
                 path: path.to_path_buf(),
                 line: Some(*line),
                 msg: format!("mtllib {}: {source}", p.display()),
+            },
+            Error::Parse {
+                path: p,
+                line: None,
+                msg,
+            } => Error::Parse {
+                path: path.to_path_buf(),
+                line: Some(*line),
+                msg: format!("mtllib {}: {msg}", p.display()),
             },
             other => other,
         })?;
