@@ -502,7 +502,7 @@ pub fn run() -> Result<()> {
             }
             println!("{}", pipeline::format_times(&s.stages, s.peak_memory));
             println!(
-                "wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json}}",
+                "wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json, manifest.json}}",
                 args.output.display()
             );
             Ok(())

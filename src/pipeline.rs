@@ -494,7 +494,7 @@ pub fn factors(
     timer.stages.extend(stages);
     let (ff, repair_report) = timer.run("repair", 0, || repair::apply(ff, repair));
     let diagnostics = timer.run("diagnostics", 0, || ff.diagnostics());
-    let provenance = timer.run("write", 0, || store::write(out_dir, &patches, &ff))?;
+    let provenance = timer.run("write", 0, || store::write(out_dir, &patches, &ff, repair))?;
     Ok(FactorsSummary {
         provenance,
         diagnostics,
