@@ -392,10 +392,19 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     let (b, report) = timer.run("solve", 0, || {
         solve_radiosity(&patches, &ff, cfg.method, &cfg.solve)
     })?;
-    if let Some(k) = b.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
+    // The outputs store f32: a radiosity past its range would be written as infinite.
+    if let Some(k) = b
+        .iter()
+        .position(|v| v.iter().any(|&c| !(c as f32).is_finite()))
+    {
         return Err(Error::Scene {
             scene: scene.source.clone(),
-            msg: format!("the solve produced a non-finite radiosity at patch {k}"),
+            msg: format!(
+                "the solve produced radiosity {:?} at patch {k}, not finite in f32 (the EXR and \
+                 PLY store f32, up to {:e}): scale the emissions down",
+                b[k],
+                f32::MAX
+            ),
         });
     }
     let verts = timer.run("per-vertex", 0, || {

@@ -206,6 +206,22 @@ fn parse_floats(
         .collect()
 }
 
+/// Refuses values that would not survive the conversion to f32 (positions are stored as
+/// f32, and so are the outputs): `1e39` would become infinite.
+fn check_f32(path: &Path, line: usize, what: &str, values: &[f64]) -> Result<()> {
+    match values.iter().find(|x| x.abs() > f32::MAX as f64) {
+        Some(x) => Err(Error::Parse {
+            path: path.to_path_buf(),
+            line: Some(line),
+            msg: format!(
+                "`{what}` value {x:e} is beyond the f32 range (|x| <= {:e}) it is stored in",
+                f32::MAX
+            ),
+        }),
+        None => Ok(()),
+    }
+}
+
 fn scan_lines(path: &Path, text: &str) -> Result<Scan> {
     let mut scan = Scan {
         mtllibs: Vec::new(),
@@ -223,7 +239,8 @@ fn scan_lines(path: &Path, text: &str) -> Result<Scan> {
         };
         match key {
             "v" => {
-                parse_floats(path, line, "v", rest, 3)?;
+                let v = parse_floats(path, line, "v", rest, 3)?;
+                check_f32(path, line, "v", &v)?;
                 n_vertices += 1;
             }
             "f" => {
@@ -283,10 +300,9 @@ fn parse_camera(path: &Path, line: usize, words: &[&str]) -> Result<Camera> {
         if !["eye", "target", "up", "fov"].contains(&key) {
             return Err(bad(&format!("unknown key `{key}`")));
         }
-        vals.insert(
-            key,
-            parse_floats(path, line, key, &words[(i + 1).min(words.len())..], n)?,
-        );
+        let v = parse_floats(path, line, key, &words[(i + 1).min(words.len())..], n)?;
+        check_f32(path, line, key, &v)?;
+        vals.insert(key, v);
         i += 1 + n;
     }
     let v3 = |k: &str| -> Result<Vec3> {
