@@ -173,10 +173,22 @@ impl MeshArgs {
             Some(h) if h > 0.0 && h.is_finite() => Resolution::MaxEdge(h),
             Some(h) => bail!("--max-edge must be a positive length, got {h}"),
             None if self.patches == 0 => bail!("--patches must be at least 1"),
+            None if self.patches > radiosity::budget::MAX_PATCHES => bail!(
+                "--patches must be at most {}, got {}",
+                radiosity::budget::MAX_PATCHES,
+                self.patches
+            ),
             None => Resolution::Patches(self.patches),
         })
     }
 }
+
+/// Caps of count arguments (a larger value is a typo or a memory bomb, not a setting).
+const MAX_REPLICATES: usize = 1024;
+const MAX_RAYS: usize = 256;
+const MAX_THREADS: usize = 4096;
+const MAX_STEPS: usize = 1000;
+const MAX_ITERATIONS: usize = 1_000_000_000;
 
 #[derive(Args, Debug)]
 struct FactorArgs {
@@ -207,6 +219,10 @@ struct FactorArgs {
     /// pattern (closure assumes a closed scene).
     #[arg(long, value_enum, default_value_t = RepairArg::None)]
     repair: RepairArg,
+    /// Memory the run may plan to use (bytes, or with K, M, G, T); default: what the system
+    /// has available. A run estimated to need more is refused before any work.
+    #[arg(long, value_name = "SIZE", value_parser = parse_memory)]
+    max_memory: Option<u64>,
 }
 
 impl FactorArgs {
@@ -214,14 +230,15 @@ impl FactorArgs {
         if self.samples == 0 || self.samples > 256 {
             bail!("--samples must be between 1 and 256, got {}", self.samples);
         }
-        if self.replicates < 2 {
+        if !(2..=MAX_REPLICATES).contains(&self.replicates) {
             bail!(
-                "--replicates must be at least 2 (standard errors need two), got {}",
+                "--replicates must be between 2 (standard errors need two) and \
+                 {MAX_REPLICATES}, got {}",
                 self.replicates
             );
         }
-        if self.rays == 0 {
-            bail!("--rays must be at least 1");
+        if !(1..=MAX_RAYS).contains(&self.rays) {
+            bail!("--rays must be between 1 and {MAX_RAYS}, got {}", self.rays);
         }
         if !(self.tol >= 1e-14 && self.tol < 1.0) {
             bail!("--tol must be in [1e-14, 1), got {}", self.tol);
@@ -255,8 +272,8 @@ impl FactorArgs {
 
     fn init_threads(&self) -> Result<()> {
         if let Some(n) = self.threads {
-            if n == 0 {
-                bail!("--threads must be at least 1");
+            if !(1..=MAX_THREADS).contains(&n) {
+                bail!("--threads must be between 1 and {MAX_THREADS}, got {n}");
             }
             rayon::ThreadPoolBuilder::new()
                 .num_threads(n)
@@ -374,6 +391,10 @@ fn parse_size(s: &str) -> Result<(u32, u32)> {
     Ok((w, h))
 }
 
+fn parse_memory(s: &str) -> Result<u64> {
+    radiosity::budget::parse_bytes(s).map_err(|e| anyhow::anyhow!("--max-memory {e}"))
+}
+
 fn parse_width(s: &str) -> Result<radiosity::simd::Width> {
     radiosity::simd::Width::parse(s)
         .with_context(|| format!("--simd `{s}`: expected avx512, avx2 or baseline"))
@@ -393,6 +414,18 @@ fn bake(args: &BakeArgs) -> Result<()> {
     args.est.init_threads()?;
     if !(args.tolerance > 0.0 && args.tolerance < 1.0) {
         bail!("--tolerance must be in (0, 1), got {}", args.tolerance);
+    }
+    if !(1..=MAX_ITERATIONS).contains(&args.max_iterations) {
+        bail!(
+            "--max-iterations must be between 1 and {MAX_ITERATIONS}, got {}",
+            args.max_iterations
+        );
+    }
+    if args.steps.len() > MAX_STEPS {
+        bail!(
+            "--steps lists {} steps; at most {MAX_STEPS} previews are written",
+            args.steps.len()
+        );
     }
     let cfg = BakeConfig {
         scene: args.scene.clone(),
@@ -418,6 +451,7 @@ fn bake(args: &BakeArgs) -> Result<()> {
         factors: args.factors.clone(),
         steps: args.steps.clone(),
         repair: args.est.repair.repair(),
+        max_memory: args.est.max_memory,
     };
     let bars = Bars {
         bar: Mutex::new(None),
@@ -467,13 +501,14 @@ pub fn run() -> Result<()> {
                 bar: Mutex::new(None),
                 tty: std::io::stderr().is_terminal(),
             };
-            let s = pipeline::factors(
+            let s = pipeline::factors_within(
                 &args.scene,
                 args.mesh.resolution()?,
                 &args.factors.choice()?,
                 args.factors.seed,
                 &args.output,
                 args.factors.repair.repair(),
+                args.factors.max_memory,
                 &bars,
             )?;
             let p = &s.provenance;

@@ -29,6 +29,7 @@
 
 pub mod analytic;
 pub mod bench;
+pub mod budget;
 pub mod error;
 pub mod formfactor;
 pub mod input;

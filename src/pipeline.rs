@@ -8,6 +8,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use crate::budget;
 use crate::error::{Error, Result};
 use crate::formfactor::{
     self, AreaMc, Context, Estimator, Hemicube, Hemisphere, Nodes, Pattern, SemiAnalytic,
@@ -133,6 +134,9 @@ pub struct BakeConfig {
     pub steps: Vec<usize>,
     /// Physical constraints to restore in the form factors before solving.
     pub repair: Repair,
+    /// Memory the run may plan to use, in bytes (`None`: what the system has available);
+    /// a larger estimate is refused before any work ([`crate::budget`]).
+    pub max_memory: Option<u64>,
 }
 
 impl Default for BakeConfig {
@@ -156,6 +160,7 @@ impl Default for BakeConfig {
             factors: None,
             steps: Vec::new(),
             repair: Repair::None,
+            max_memory: None,
         }
     }
 }
@@ -259,6 +264,34 @@ impl Timer<'_> {
         self.stages.push(StageTime { stage, seconds });
         out
     }
+}
+
+/// Refuses a run whose memory estimate ([`budget::Estimate`]) exceeds `max_memory` (or
+/// the available memory), before the scene is meshed: `estimator` is `None` when the form
+/// factors are read from a folder, `preview` the preview size of a bake.
+pub fn check_budget(
+    scene: &Scene,
+    resolution: Resolution,
+    estimator: Option<&EstimatorChoice>,
+    method: Option<Method>,
+    preview: Option<(u32, u32)>,
+    max_memory: Option<u64>,
+) -> Result<()> {
+    let per_row = match estimator {
+        None => 0,
+        Some(EstimatorChoice::Hemisphere { strata, replicates }) => {
+            strata.saturating_mul(*strata).saturating_mul(*replicates)
+        }
+        Some(EstimatorChoice::Hemicube { res }) => res.saturating_mul(*res).saturating_mul(3),
+        Some(_) => usize::MAX,
+    };
+    let pixels = preview.map_or(0, |(w, h)| w as u64 * h as u64);
+    let estimate = |patches: usize| {
+        let dense = method == Some(Method::Direct) && patches <= solve::DIRECT_MAX_PATCHES;
+        budget::Estimate::new(patches, per_row, dense, pixels)
+    };
+    let patches = crate::mesh::expected_patches(scene, resolution).max(scene.faces.len());
+    budget::check(&estimate(patches), max_memory, estimate)
 }
 
 /// Computes the form factors of a patch set (builds the BVH as its own stage).
@@ -366,6 +399,14 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     output::check_folder(&cfg.out_dir, FolderKind::Bake)?;
     let scene = timer.run("load", 0, || Scene::load(&cfg.scene))?;
     scene.require_emitter()?;
+    check_budget(
+        &scene,
+        cfg.resolution,
+        cfg.factors.is_none().then_some(&cfg.estimator),
+        Some(cfg.method),
+        Some(cfg.preview),
+        cfg.max_memory,
+    )?;
     let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
         let p = PatchSet::build(&scene, cfg.resolution)?;
         p.validate()?;
@@ -478,7 +519,8 @@ pub struct FactorsSummary {
     pub peak_memory: u64,
 }
 
-/// Computes form factors for a scene and stores them in `out_dir` (see [`store`]).
+/// Computes form factors for a scene and stores them in `out_dir` (see [`store`]), within
+/// the available memory.
 pub fn factors(
     scene: &str,
     resolution: Resolution,
@@ -488,12 +530,31 @@ pub fn factors(
     repair: Repair,
     obs: &dyn Observer,
 ) -> Result<FactorsSummary> {
+    factors_within(
+        scene, resolution, estimator, seed, out_dir, repair, None, obs,
+    )
+}
+
+/// [`factors`] with a memory limit in bytes (`None`: the available memory), checked by
+/// [`check_budget`] before any work.
+#[allow(clippy::too_many_arguments)]
+pub fn factors_within(
+    scene: &str,
+    resolution: Resolution,
+    estimator: &EstimatorChoice,
+    seed: u64,
+    out_dir: &std::path::Path,
+    repair: Repair,
+    max_memory: Option<u64>,
+    obs: &dyn Observer,
+) -> Result<FactorsSummary> {
     let mut timer = Timer {
         obs,
         stages: Vec::new(),
     };
     output::check_folder(out_dir, FolderKind::Factors)?;
     let scene = timer.run("load", 0, || Scene::load(scene))?;
+    check_budget(&scene, resolution, Some(estimator), None, None, max_memory)?;
     let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
         let p = PatchSet::build(&scene, resolution)?;
         p.validate()?;

@@ -442,30 +442,44 @@ fn sample_triangle(a: DVec3, b: DVec3, c: DVec3, u: f64, v: f64) -> DVec3 {
     a * b0 + b * (1.0 - b0 - b1) + c * b1
 }
 
+/// The number of patches [`PatchSet::build`] makes from `scene` with edge length `h`,
+/// without making them.
+pub fn patch_count(scene: &Scene, h: f64) -> usize {
+    scene
+        .faces
+        .iter()
+        .map(|f| {
+            let p: Vec<DVec3> = f
+                .corner_slice()
+                .iter()
+                .map(|&c| scene.positions[c as usize])
+                .collect();
+            if p.len() == 4 {
+                cells(p[1] - p[0], h)
+                    .max(cells(p[2] - p[3], h))
+                    .saturating_mul(cells(p[3] - p[0], h).max(cells(p[2] - p[1], h)))
+            } else {
+                let k = cells(p[1] - p[0], h)
+                    .max(cells(p[2] - p[1], h))
+                    .max(cells(p[0] - p[2], h));
+                k.saturating_mul(k)
+            }
+        })
+        .fold(0usize, usize::saturating_add)
+}
+
+/// About how many patches `res` gives for `scene` (exact for [`Resolution::MaxEdge`]).
+pub fn expected_patches(scene: &Scene, res: Resolution) -> usize {
+    match res {
+        Resolution::MaxEdge(h) if h > 0.0 && h.is_finite() => patch_count(scene, h),
+        Resolution::MaxEdge(_) => 0,
+        Resolution::Patches(n) => n,
+    }
+}
+
 /// Finds the edge length that gives about `n` patches (within a few percent).
 fn edge_for_count(scene: &Scene, n: usize) -> f64 {
-    let count = |h: f64| -> usize {
-        scene
-            .faces
-            .iter()
-            .map(|f| {
-                let p: Vec<DVec3> = f
-                    .corner_slice()
-                    .iter()
-                    .map(|&c| scene.positions[c as usize])
-                    .collect();
-                if p.len() == 4 {
-                    cells(p[1] - p[0], h).max(cells(p[2] - p[3], h))
-                        * cells(p[3] - p[0], h).max(cells(p[2] - p[1], h))
-                } else {
-                    let k = cells(p[1] - p[0], h)
-                        .max(cells(p[2] - p[1], h))
-                        .max(cells(p[0] - p[2], h));
-                    k * k
-                }
-            })
-            .sum()
-    };
+    let count = |h: f64| patch_count(scene, h);
     // The count falls as h grows: bisect on log h between "one patch per face" and tiny.
     let (lo0, hi0) = scene.bounds();
     let mut hi = (hi0 - lo0).length() * 2.0;
