@@ -661,6 +661,100 @@ mod tests {
     use super::*;
     use crate::matrix::Entry;
 
+    /// A valid 3 x 3 F.mtx body with `extra` lines appended and the header's count `nnz`.
+    fn mtx(header: &str, nnz: &str, entries: &str) -> String {
+        format!("%%MatrixMarket matrix coordinate {header}\n% comment\n3 3 {nnz}\n{entries}")
+    }
+
+    fn parse(text: &str, values: Values) -> Result<MtxRows> {
+        let p = Path::new("F.mtx");
+        parse_mtx(p, text.as_bytes(), text.len() as u64, 3, values, None)
+    }
+
+    #[test]
+    fn malformed_matrix_market_is_refused_with_its_line() {
+        let good = "1 2 5e-1\n1 3 2.5e-1\n3 1 1e0\n";
+        let m = parse(&mtx("real general", "3", good), Values::FormFactors).unwrap();
+        assert_eq!(m.indptr, [0, 2, 2, 3]);
+        assert_eq!(m.indices, [1, 2, 0]);
+        assert_eq!(m.data, [0.5, 0.25, 1.0]);
+        let cases: [(String, &str); 12] = [
+            (mtx("real symmetric", "3", good), "F.mtx:1: header"),
+            (
+                mtx("real general", "3", "1 2 0.5\n4 3 0.1\n3 1 1\n"),
+                "F.mtx:5:",
+            ),
+            (
+                mtx("real general", "3", "1 2 0.5\n1 0 0.1\n3 1 1\n"),
+                "F.mtx:5:",
+            ),
+            (
+                mtx("real general", "1000000000000000000", good),
+                "header announces",
+            ),
+            (
+                mtx("real general", "3", "1 2 0.5\n1 2 0.5\n3 1 1\n"),
+                "F.mtx:5: entry (1, 2) repeats",
+            ),
+            (
+                mtx("real general", "3", "1 3 0.5\n1 2 0.5\n3 1 1\n"),
+                "F.mtx:5: entry (1, 2) after (1, 3)",
+            ),
+            (
+                mtx("real general", "3", "1 2 5\n1 3 0.5\n3 1 1\n"),
+                "F.mtx:4: F(0, 1) = 5",
+            ),
+            (
+                mtx("real general", "3", "1 2 NaN\n1 3 0.5\n3 1 1\n"),
+                "F.mtx:4:",
+            ),
+            (
+                mtx("real general", "3", "1 2 -0.1\n1 3 0.5\n3 1 1\n"),
+                "F.mtx:4:",
+            ),
+            (
+                mtx("real general", "4", good),
+                "ends after 3 of the header's 4",
+            ),
+            (mtx("real general", "2", good), "F.mtx:6: more entries"),
+            (
+                mtx("real general", "3", "1 2 0.5 7\n1 3 0.5\n3 1 1\n"),
+                "F.mtx:4:",
+            ),
+        ];
+        for (text, want) in cases {
+            let e = parse(&text, Values::FormFactors).unwrap_err().to_string();
+            assert!(e.contains(want), "{text}\n  got {e}\n  expected {want}");
+        }
+        let e = parse(&mtx("real general", "1", "1 2 inf\n"), Values::StdErrors)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("F.mtx:4: standard error inf"), "{e}");
+        // A shape other than the scene's is a mismatch, not a parse error.
+        let e = parse(
+            "%%MatrixMarket matrix coordinate real general\n4 4 0\n",
+            Values::FormFactors,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("matrix is 4x4, the scene has 3 patches"), "{e}");
+        // No newline for gigabytes is refused at the first long line, not read to the end.
+        let long = format!("%%MatrixMarket{}", " ".repeat(5000));
+        let e = parse(&long, Values::FormFactors).unwrap_err().to_string();
+        assert!(e.contains("F.mtx:1: line longer than"), "{e}");
+    }
+
+    #[test]
+    fn a_device_is_not_read_as_a_matrix() {
+        let e = read_mtx(Path::new("/dev/zero"), 3, Values::FormFactors, None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("/dev/zero") && e.contains("not a regular file"),
+            "{e}"
+        );
+    }
+
     #[test]
     fn matrix_market_text_does_not_depend_on_the_pieces() {
         // Rows of 0 to 6 entries, empty rows included, written whole, in pieces of one row
