@@ -4,6 +4,7 @@ mod bake;
 mod formfactors;
 mod geometry;
 mod invalid;
+mod reliability;
 mod shelf;
 mod stability;
 mod store;
