@@ -113,7 +113,10 @@ fn runs_too_large_are_refused_before_any_work() {
     let out = radiosity(&["bake", "--max-memory", "lots"]);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{stderr}");
-    assert!(stderr.contains("--max-memory") && stderr.contains("4G"), "{stderr}");
+    assert!(
+        stderr.contains("--max-memory") && stderr.contains("4G"),
+        "{stderr}"
+    );
     assert!(!PathBuf::from(o).exists(), "nothing may be written");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -206,8 +206,8 @@ fn parse_floats(
         .collect()
 }
 
-/// Refuses values that would not survive the conversion to f32 (positions are stored as
-/// f32, and so are the outputs): `1e39` would become infinite.
+/// Refuses values that would not survive the conversion to f32 (Embree's vertex buffer,
+/// the preview camera and the output files hold f32): `1e39` would become infinite.
 fn check_f32(path: &Path, line: usize, what: &str, values: &[f64]) -> Result<()> {
     match values.iter().find(|x| x.abs() > f32::MAX as f64) {
         Some(x) => Err(Error::Parse {
