@@ -6,9 +6,10 @@ use std::path::PathBuf;
 use std::sync::Mutex;
 
 use anyhow::{bail, Context as _, Result};
-use clap::{Args, Parser, Subcommand, ValueEnum};
+use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use radiosity::formfactor::EstimatorKind;
 use radiosity::mesh::Resolution;
 use radiosity::output::Exposure;
 use radiosity::pipeline::{self, BakeConfig, EstimatorChoice, Observer};
@@ -104,59 +105,6 @@ struct StudyArgs {
     threads: Option<usize>,
 }
 
-#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-enum EstimatorArg {
-    /// Exact point-to-polygon factor over emitter points, times ray-traced visibility.
-    Semi,
-    /// Area-to-area Monte Carlo, stratified point pairs.
-    Stratified,
-    /// Area-to-area Monte Carlo, independent uniform point pairs.
-    Uniform,
-    /// Hemisphere shooting: samples² cosine-weighted rays per patch and replicate.
-    Hemisphere,
-    /// Area-to-area randomized QMC: Owen-scrambled Sobol point pairs.
-    Sobol,
-    /// Hemicube with `--samples` cells per side of the top face (deterministic).
-    Hemicube,
-}
-
-#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-enum RepairArg {
-    /// Keep the estimates (rows over 1 are still reported).
-    None,
-    /// A_i F_ij = A_j F_ji by error-weighted means.
-    Reciprocity,
-    /// Rows sum to 1 by a least-squares correction (closed scenes only).
-    Closure,
-    /// Both constraints together.
-    Both,
-}
-
-impl RepairArg {
-    fn repair(self) -> Repair {
-        match self {
-            RepairArg::None => Repair::None,
-            RepairArg::Reciprocity => Repair::Reciprocity,
-            RepairArg::Closure => Repair::Closure,
-            RepairArg::Both => Repair::Both,
-        }
-    }
-}
-
-#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-enum SolverArg {
-    /// Jacobi sweeps, rows in parallel.
-    Jacobi,
-    /// Gauss-Seidel sweeps.
-    GaussSeidel,
-    /// Progressive refinement by shooting.
-    Progressive,
-    /// Preconditioned conjugate gradients on the symmetric form.
-    Cg,
-    /// Dense LU with partial pivoting (up to 4096 patches).
-    Direct,
-}
-
 #[derive(Args, Debug)]
 struct MeshArgs {
     /// Target number of patches (the edge length is chosen to get close to it).
@@ -193,8 +141,8 @@ const MAX_ITERATIONS: usize = 1_000_000_000;
 #[derive(Args, Debug)]
 struct FactorArgs {
     /// Form-factor estimator.
-    #[arg(long, value_enum, default_value_t = EstimatorArg::Semi)]
-    estimator: EstimatorArg,
+    #[arg(long, value_enum, default_value_t = EstimatorKind::Semi)]
+    estimator: EstimatorKind,
     /// Samples per side: emitter points per side (semi), strata per side (area estimators)
     /// or cells per side of the top face (hemicube).
     #[arg(long, default_value_t = 3)]
@@ -217,8 +165,8 @@ struct FactorArgs {
     threads: Option<usize>,
     /// Restore physical constraints using the standard errors, keeping the sparsity
     /// pattern (closure assumes a closed scene).
-    #[arg(long, value_enum, default_value_t = RepairArg::None)]
-    repair: RepairArg,
+    #[arg(long, value_enum, default_value_t = Repair::None)]
+    repair: Repair,
     /// Memory the run may plan to use (bytes, or with K, M, G, T); default: what the system
     /// has available. A run estimated to need more is refused before any work.
     #[arg(long, value_name = "SIZE", value_parser = parse_memory)]
@@ -244,29 +192,29 @@ impl FactorArgs {
             bail!("--tol must be in [1e-14, 1), got {}", self.tol);
         }
         Ok(match self.estimator {
-            EstimatorArg::Semi => EstimatorChoice::SemiAnalytic {
+            EstimatorKind::Semi => EstimatorChoice::SemiAnalytic {
                 points: self.samples,
                 rays: self.rays,
                 replicates: self.replicates,
                 tol: self.tol,
             },
-            EstimatorArg::Stratified => EstimatorChoice::AreaStratified {
+            EstimatorKind::Stratified => EstimatorChoice::AreaStratified {
                 strata: self.samples,
                 replicates: self.replicates,
             },
-            EstimatorArg::Hemisphere => EstimatorChoice::Hemisphere {
+            EstimatorKind::Hemisphere => EstimatorChoice::Hemisphere {
                 strata: self.samples,
                 replicates: self.replicates,
             },
-            EstimatorArg::Uniform => EstimatorChoice::AreaUniform {
+            EstimatorKind::Uniform => EstimatorChoice::AreaUniform {
                 strata: self.samples,
                 replicates: self.replicates,
             },
-            EstimatorArg::Sobol => EstimatorChoice::AreaSobol {
+            EstimatorKind::Sobol => EstimatorChoice::AreaSobol {
                 strata: self.samples,
                 replicates: self.replicates,
             },
-            EstimatorArg::Hemicube => EstimatorChoice::Hemicube { res: self.samples },
+            EstimatorKind::Hemicube => EstimatorChoice::Hemicube { res: self.samples },
         })
     }
 
@@ -297,8 +245,8 @@ struct BakeArgs {
     #[command(flatten)]
     est: FactorArgs,
     /// Radiosity solver.
-    #[arg(long, value_enum, default_value_t = SolverArg::GaussSeidel)]
-    solver: SolverArg,
+    #[arg(long, value_enum, default_value_t = Method::GaussSeidel)]
+    solver: Method,
     /// Relative residual at which the solver stops.
     #[arg(long, default_value_t = 1e-6)]
     tolerance: f64,
@@ -433,13 +381,7 @@ fn bake(args: &BakeArgs) -> Result<()> {
         resolution: args.mesh.resolution()?,
         estimator: args.est.choice()?,
         seed: args.est.seed,
-        method: match args.solver {
-            SolverArg::Jacobi => Method::Jacobi,
-            SolverArg::GaussSeidel => Method::GaussSeidel,
-            SolverArg::Progressive => Method::Progressive,
-            SolverArg::Cg => Method::Cg,
-            SolverArg::Direct => Method::Direct,
-        },
+        method: args.solver,
         solve: Options {
             tolerance: args.tolerance,
             max_iterations: args.max_iterations,
@@ -450,7 +392,7 @@ fn bake(args: &BakeArgs) -> Result<()> {
         crease_deg: 30.0,
         factors: args.factors.clone(),
         steps: args.steps.clone(),
-        repair: args.est.repair.repair(),
+        repair: args.est.repair,
         max_memory: args.est.max_memory,
     };
     let bars = Bars {
@@ -507,7 +449,7 @@ pub fn run() -> Result<()> {
                 &args.factors.choice()?,
                 args.factors.seed,
                 &args.output,
-                args.factors.repair.repair(),
+                args.factors.repair,
                 args.factors.max_memory,
                 &bars,
             )?;

@@ -9,7 +9,7 @@
 //! is lost (Cohen and Wallace 1993, §5.3), so the pipeline scales those rows to sum to 1.
 
 use rayon::prelude::*;
-use sprs::{CsMat, TriMat};
+use sprs::CsMat;
 
 /// One estimated entry of a row: `F_ij` and its standard error.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -29,6 +29,14 @@ pub struct Row {
     pub entries: Vec<Entry>,
     /// Rays cast for this row.
     pub rays: u64,
+}
+
+/// True when a row sum `sum` with standard error `se` is over 1 by more than `k` standard
+/// errors and by more than rounding (`1e-9`): the one definition of a row "over one" that
+/// the diagnostics ([`Diagnostics::rows_over_one`], `k = 3`) and the repair's bounds
+/// ([`crate::repair::Bounds::significant`]) use. A physical row sums to at most 1.
+pub fn over_one(sum: f64, se: f64, k: f64) -> bool {
+    sum > 1.0 + (k * se).max(1e-9)
 }
 
 /// What [`repair_row_sums`] changed.
@@ -499,7 +507,7 @@ impl FormFactors {
             max_row_sum: s,
             max_row: i,
             empty_rows: usize::from(vals.is_empty()),
-            rows_over_one: usize::from(s > 1.0 + (3.0 * self.row_sum_stderr(i)).max(1e-9)),
+            rows_over_one: usize::from(over_one(s, self.row_sum_stderr(i), 3.0)),
             ..Default::default()
         };
         let (mut pairs, mut beyond) = (0usize, 0usize);
@@ -557,22 +565,12 @@ impl FormFactors {
         let se = (self.area[i] * se_ij).hypot(self.area[j] * se_ji);
         Some(gap > 3.0 * se && gap > 1e-12 * m)
     }
-
-    /// The matrix as triplets, for writers.
-    pub fn triplets(&self) -> TriMat<f64> {
-        let mut t = TriMat::with_capacity(self.f.shape(), self.f.nnz());
-        for (i, row) in self.f.outer_iterator().enumerate() {
-            for (j, &v) in row.iter() {
-                t.add_triplet(i, j, v);
-            }
-        }
-        t
-    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use sprs::TriMat;
 
     #[test]
     fn repair_scales_only_rows_past_the_bound() {

@@ -306,7 +306,7 @@ pub fn form_factors(
         stages: Vec::new(),
     };
     let vis = timer.run("bvh", 0, || Visibility::new(patches))?;
-    let embree = vis.raw().version();
+    let embree = vis.embree_version();
     let est = estimator.build();
     let ctx = Context {
         patches,
@@ -574,10 +574,7 @@ pub fn factors_within(
     })
 }
 
-/// Formats bytes as MiB with one decimal.
-pub fn mib(bytes: u64) -> String {
-    format!("{:.1} MiB", bytes as f64 / (1024.0 * 1024.0))
-}
+pub use crate::solve::mib;
 
 /// `time: STAGE SECONDS, ..., total SECONDS; peak memory MIB`: the last line of a summary.
 pub fn format_times(stages: &[StageTime], peak_memory: u64) -> String {

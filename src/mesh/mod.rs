@@ -1,6 +1,6 @@
 //! Patches: the scene's faces subdivided into small planar polygons.
 //!
-//! A patch is a handle ([`PatchId`], an index) into the flat arrays of a [`PatchSet`]:
+//! A patch is a handle (its index `i`, stored as `u32`) into the flat arrays of a [`PatchSet`]:
 //! corners, area, normal, centroid, material (the pbrt-v4 layout: no object owns geometry).
 //! Quads are split into an `nu x nv` grid of quads and triangles into `n^2` similar
 //! triangles, with `nu`, `nv`, `n` chosen so that no patch edge is longer than the target
@@ -18,9 +18,6 @@ use glam::{DVec3, Vec3};
 use crate::error::{Error, Result};
 use crate::scene::{Face, Material, Scene};
 
-/// Index of a patch in a [`PatchSet`].
-pub type PatchId = u32;
-
 /// Marks the missing 4th corner of a triangular patch.
 pub const NONE: u32 = u32::MAX;
 
@@ -33,7 +30,7 @@ pub enum Resolution {
     Patches(usize),
 }
 
-/// The patches of a scene, as flat arrays indexed by [`PatchId`].
+/// The patches of a scene, as flat arrays indexed by patch.
 #[derive(Clone, Debug, Default)]
 pub struct PatchSet {
     /// Scene name, for messages and file headers.

@@ -91,8 +91,8 @@ pub use gauss_seidel::GaussSeidel;
 pub use jacobi::Jacobi;
 pub use progressive::{ambient, ambient_term, progressive_steps, Progressive};
 
-/// Formats bytes as MiB with one decimal.
-pub(crate) fn mib(bytes: u64) -> String {
+/// Formats bytes as MiB with one decimal (memory needs in messages and summaries).
+pub fn mib(bytes: u64) -> String {
     format!("{:.1} MiB", bytes as f64 / (1024.0 * 1024.0))
 }
 
@@ -288,19 +288,19 @@ pub trait Solver {
     fn solve(&self, sys: &System, opts: &Options) -> Result<(Vec<[f64; 3]>, SolveReport)>;
 }
 
-/// The available solvers, by name.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+/// The available solvers, by name (also the command line's `--solver` values).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum Method {
-    /// [`Jacobi`].
+    /// Jacobi sweeps, rows in parallel ([`Jacobi`]).
     Jacobi,
-    /// [`GaussSeidel`].
+    /// Gauss-Seidel sweeps ([`GaussSeidel`]).
     #[default]
     GaussSeidel,
-    /// [`Progressive`].
+    /// Progressive refinement by shooting ([`Progressive`]).
     Progressive,
-    /// [`Cg`].
+    /// Preconditioned conjugate gradients on the symmetric form ([`Cg`]).
     Cg,
-    /// [`Direct`].
+    /// Dense LU with partial pivoting, up to 4096 patches ([`Direct`]).
     Direct,
 }
 
@@ -752,19 +752,49 @@ pub(crate) fn finish(
 /// residual of `b`, so each pass over `F` also measures the iterate it starts from. The
 /// loop returns the first iterate whose residual is within tolerance (the one the residual
 /// was computed for, so the reported residual is exact), or the last one at the cap.
+/// What every solver does first: starts the clock, checks the options and the system, and
+/// builds the row view of `F`, the residual scale and the gain bound with its notes.
+pub(crate) struct Prologue<'a> {
+    pub(crate) start: Instant,
+    pub(crate) rows: Rows<'a>,
+    pub(crate) scale: Scale,
+    pub(crate) gain: Gain,
+    pub(crate) notes: Vec<String>,
+}
+
+impl<'a> Prologue<'a> {
+    /// The prologue of a solve of `sys` with `opts`; fails on invalid options or system.
+    pub(crate) fn new(sys: &System<'a>, opts: &Options) -> Result<Prologue<'a>> {
+        let start = Instant::now();
+        opts.validate()?;
+        sys.validate()?;
+        let rows = Rows::new(sys.f);
+        let scale = Scale::new(sys.emit);
+        let gain = Gain::new(sys, &rows);
+        let notes = gain.notes();
+        Ok(Prologue {
+            start,
+            rows,
+            scale,
+            gain,
+            notes,
+        })
+    }
+}
+
 pub(crate) fn sweep_loop(
     solver: &str,
     sys: &System,
     opts: &Options,
     mut pass: impl FnMut(&Rows, &[[f64; 3]], &mut [[f64; 3]]) -> [f64; 3],
 ) -> Result<(Vec<[f64; 3]>, SolveReport)> {
-    let start = Instant::now();
-    opts.validate()?;
-    sys.validate()?;
-    let rows = Rows::new(sys.f);
-    let scale = Scale::new(sys.emit);
-    let gain = Gain::new(sys, &rows);
-    let notes = gain.notes();
+    let Prologue {
+        start,
+        rows,
+        scale,
+        gain,
+        notes,
+    } = Prologue::new(sys, opts)?;
     let mut b = sys.emit.to_vec();
     let mut next = b.clone();
     let mut history = Vec::new();
