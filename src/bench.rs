@@ -601,17 +601,7 @@ pub fn loglog_slope(points: &[(f64, f64)]) -> f64 {
         .filter(|(x, y)| *x > 0.0 && *y > 0.0)
         .map(|(x, y)| (x.ln(), y.ln()))
         .collect();
-    if p.len() < 2 {
-        return f64::NAN;
-    }
-    let n = p.len() as f64;
-    let (mx, my) = (
-        p.iter().map(|q| q.0).sum::<f64>() / n,
-        p.iter().map(|q| q.1).sum::<f64>() / n,
-    );
-    let sxy: f64 = p.iter().map(|q| (q.0 - mx) * (q.1 - my)).sum();
-    let sxx: f64 = p.iter().map(|q| (q.0 - mx).powi(2)).sum();
-    sxy / sxx
+    crate::study::ls_slope(&p)
 }
 
 /// A rayon pool of `threads` workers, each with flush-to-zero and denormals-are-zero
@@ -705,7 +695,7 @@ pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
         print(&format!(
             "scene `{}`, Embree {}, ftz/daz {}, sampling passes {}",
             cfg.scene,
-            vis.raw().version(),
+            vis.embree_version(),
             if cfg.ftz { "on" } else { "off" },
             crate::simd::active()
         ));

@@ -6,9 +6,10 @@ use std::path::PathBuf;
 use std::sync::Mutex;
 
 use anyhow::{bail, Context as _, Result};
-use clap::{Args, Parser, Subcommand, ValueEnum};
+use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use radiosity::formfactor::EstimatorKind;
 use radiosity::mesh::Resolution;
 use radiosity::output::Exposure;
 use radiosity::pipeline::{self, BakeConfig, EstimatorChoice, Observer};
@@ -127,59 +128,6 @@ struct StudyArgs {
     threads: Option<usize>,
 }
 
-#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-enum EstimatorArg {
-    /// Exact point-to-polygon factor over emitter points, times ray-traced visibility.
-    Semi,
-    /// Area-to-area Monte Carlo, stratified point pairs.
-    Stratified,
-    /// Area-to-area Monte Carlo, independent uniform point pairs.
-    Uniform,
-    /// Hemisphere shooting: samples² cosine-weighted rays per patch and replicate.
-    Hemisphere,
-    /// Area-to-area randomized QMC: Owen-scrambled Sobol point pairs.
-    Sobol,
-    /// Hemicube with `--samples` cells per side of the top face (deterministic).
-    Hemicube,
-}
-
-#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-enum RepairArg {
-    /// Keep the estimates (rows over 1 are still reported).
-    None,
-    /// A_i F_ij = A_j F_ji by error-weighted means.
-    Reciprocity,
-    /// Rows sum to 1 by a least-squares correction (closed scenes only).
-    Closure,
-    /// Both constraints together.
-    Both,
-}
-
-impl RepairArg {
-    fn repair(self) -> Repair {
-        match self {
-            RepairArg::None => Repair::None,
-            RepairArg::Reciprocity => Repair::Reciprocity,
-            RepairArg::Closure => Repair::Closure,
-            RepairArg::Both => Repair::Both,
-        }
-    }
-}
-
-#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-enum SolverArg {
-    /// Jacobi sweeps, rows in parallel.
-    Jacobi,
-    /// Gauss-Seidel sweeps.
-    GaussSeidel,
-    /// Progressive refinement by shooting.
-    Progressive,
-    /// Preconditioned conjugate gradients on the symmetric form.
-    Cg,
-    /// Dense LU with partial pivoting (up to 4096 patches).
-    Direct,
-}
-
 #[derive(Args, Debug)]
 struct MeshArgs {
     /// Target number of patches (the edge length is chosen to get close to it); default
@@ -203,6 +151,10 @@ impl MeshArgs {
             (Some(h), _) if h > 0.0 && h.is_finite() => Resolution::MaxEdge(h),
             (Some(h), _) => bail!("--max-edge must be a positive length, got {h}"),
             (None, Some(0)) => bail!("--patches must be at least 1"),
+            (None, Some(n)) if n > radiosity::budget::MAX_PATCHES => bail!(
+                "--patches must be at most {}, got {n}",
+                radiosity::budget::MAX_PATCHES
+            ),
             (None, Some(n)) => Resolution::Patches(n),
             (None, None) => default,
         })
@@ -210,7 +162,7 @@ impl MeshArgs {
 }
 
 /// How a bake solves for radiosity.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 enum MethodArg {
     /// Form factors between every pair of patches of a uniform mesh, then a matrix solver.
     Flat,
@@ -243,12 +195,18 @@ struct HierarchyArgs {
     #[arg(long, default_value_t = 0.01)]
     link_accuracy: f64,
 }
+/// Caps of count arguments (a larger value is a typo or a memory bomb, not a setting).
+const MAX_REPLICATES: usize = 1024;
+const MAX_RAYS: usize = 256;
+const MAX_THREADS: usize = 4096;
+const MAX_STEPS: usize = 1000;
+const MAX_ITERATIONS: usize = 1_000_000_000;
 
 #[derive(Args, Debug)]
 struct FactorArgs {
     /// Form-factor estimator.
-    #[arg(long, value_enum, default_value_t = EstimatorArg::Semi)]
-    estimator: EstimatorArg,
+    #[arg(long, value_enum, default_value_t = EstimatorKind::Semi)]
+    estimator: EstimatorKind,
     /// Samples per side: emitter points per side (semi), strata per side (area estimators)
     /// or cells per side of the top face (hemicube).
     #[arg(long, default_value_t = 3)]
@@ -271,8 +229,12 @@ struct FactorArgs {
     threads: Option<usize>,
     /// Restore physical constraints using the standard errors, keeping the sparsity
     /// pattern (closure assumes a closed scene).
-    #[arg(long, value_enum, default_value_t = RepairArg::None)]
-    repair: RepairArg,
+    #[arg(long, value_enum, default_value_t = Repair::None)]
+    repair: Repair,
+    /// Memory the run may plan to use (bytes, or with K, M, G, T); default: what the system
+    /// has available. A run estimated to need more is refused before any work.
+    #[arg(long, value_name = "SIZE", value_parser = parse_memory)]
+    max_memory: Option<u64>,
 }
 
 impl FactorArgs {
@@ -280,49 +242,50 @@ impl FactorArgs {
         if self.samples == 0 || self.samples > 256 {
             bail!("--samples must be between 1 and 256, got {}", self.samples);
         }
-        if self.replicates < 2 {
+        if !(2..=MAX_REPLICATES).contains(&self.replicates) {
             bail!(
-                "--replicates must be at least 2 (standard errors need two), got {}",
+                "--replicates must be between 2 (standard errors need two) and \
+                 {MAX_REPLICATES}, got {}",
                 self.replicates
             );
         }
-        if self.rays == 0 {
-            bail!("--rays must be at least 1");
+        if !(1..=MAX_RAYS).contains(&self.rays) {
+            bail!("--rays must be between 1 and {MAX_RAYS}, got {}", self.rays);
         }
         if !(self.tol >= 1e-14 && self.tol < 1.0) {
             bail!("--tol must be in [1e-14, 1), got {}", self.tol);
         }
         Ok(match self.estimator {
-            EstimatorArg::Semi => EstimatorChoice::SemiAnalytic {
+            EstimatorKind::Semi => EstimatorChoice::SemiAnalytic {
                 points: self.samples,
                 rays: self.rays,
                 replicates: self.replicates,
                 tol: self.tol,
             },
-            EstimatorArg::Stratified => EstimatorChoice::AreaStratified {
+            EstimatorKind::Stratified => EstimatorChoice::AreaStratified {
                 strata: self.samples,
                 replicates: self.replicates,
             },
-            EstimatorArg::Hemisphere => EstimatorChoice::Hemisphere {
+            EstimatorKind::Hemisphere => EstimatorChoice::Hemisphere {
                 strata: self.samples,
                 replicates: self.replicates,
             },
-            EstimatorArg::Uniform => EstimatorChoice::AreaUniform {
+            EstimatorKind::Uniform => EstimatorChoice::AreaUniform {
                 strata: self.samples,
                 replicates: self.replicates,
             },
-            EstimatorArg::Sobol => EstimatorChoice::AreaSobol {
+            EstimatorKind::Sobol => EstimatorChoice::AreaSobol {
                 strata: self.samples,
                 replicates: self.replicates,
             },
-            EstimatorArg::Hemicube => EstimatorChoice::Hemicube { res: self.samples },
+            EstimatorKind::Hemicube => EstimatorChoice::Hemicube { res: self.samples },
         })
     }
 
     fn init_threads(&self) -> Result<()> {
         if let Some(n) = self.threads {
-            if n == 0 {
-                bail!("--threads must be at least 1");
+            if !(1..=MAX_THREADS).contains(&n) {
+                bail!("--threads must be between 1 and {MAX_THREADS}, got {n}");
             }
             rayon::ThreadPoolBuilder::new()
                 .num_threads(n)
@@ -348,8 +311,8 @@ struct BakeArgs {
     #[command(flatten)]
     hier: HierarchyArgs,
     /// Radiosity solver.
-    #[arg(long, value_enum, default_value_t = SolverArg::GaussSeidel)]
-    solver: SolverArg,
+    #[arg(long, value_enum, default_value_t = Method::GaussSeidel)]
+    solver: Method,
     /// Relative residual at which the solver stops.
     #[arg(long, default_value_t = 1e-6)]
     tolerance: f64,
@@ -442,6 +405,10 @@ fn parse_size(s: &str) -> Result<(u32, u32)> {
     Ok((w, h))
 }
 
+fn parse_memory(s: &str) -> Result<u64> {
+    radiosity::budget::parse_bytes(s).map_err(|e| anyhow::anyhow!("--max-memory {e}"))
+}
+
 fn parse_width(s: &str) -> Result<radiosity::simd::Width> {
     radiosity::simd::Width::parse(s)
         .with_context(|| format!("--simd `{s}`: expected avx512, avx2 or baseline"))
@@ -487,19 +454,25 @@ fn bake(args: &BakeArgs) -> Result<()> {
             .resolution_or(Resolution::DiagonalFraction(0.25))?,
         None => args.mesh.resolution()?,
     };
+    if !(1..=MAX_ITERATIONS).contains(&args.max_iterations) {
+        bail!(
+            "--max-iterations must be between 1 and {MAX_ITERATIONS}, got {}",
+            args.max_iterations
+        );
+    }
+    if args.steps.len() > MAX_STEPS {
+        bail!(
+            "--steps lists {} steps; at most {MAX_STEPS} previews are written",
+            args.steps.len()
+        );
+    }
     let cfg = BakeConfig {
         scene: args.scene.clone(),
         out_dir: args.output.clone(),
         resolution,
         estimator: args.est.choice()?,
         seed: args.est.seed,
-        method: match args.solver {
-            SolverArg::Jacobi => Method::Jacobi,
-            SolverArg::GaussSeidel => Method::GaussSeidel,
-            SolverArg::Progressive => Method::Progressive,
-            SolverArg::Cg => Method::Cg,
-            SolverArg::Direct => Method::Direct,
-        },
+        method: args.solver,
         solve: Options {
             tolerance: args.tolerance,
             max_iterations: args.max_iterations,
@@ -510,7 +483,8 @@ fn bake(args: &BakeArgs) -> Result<()> {
         crease_deg: 30.0,
         factors: args.factors.clone(),
         steps: args.steps.clone(),
-        repair: args.est.repair.repair(),
+        repair: args.est.repair,
+        max_memory: args.est.max_memory,
         hierarchy,
     };
     let bars = Bars {
@@ -605,13 +579,14 @@ pub fn run() -> Result<()> {
                 bar: Mutex::new(None),
                 tty: std::io::stderr().is_terminal(),
             };
-            let s = pipeline::factors(
+            let s = pipeline::factors_within(
                 &args.scene,
                 args.mesh.resolution()?,
                 &args.factors.choice()?,
                 args.factors.seed,
                 &args.output,
-                args.factors.repair.repair(),
+                args.factors.repair,
+                args.factors.max_memory,
                 &bars,
             )?;
             let p = &s.provenance;
@@ -640,7 +615,7 @@ pub fn run() -> Result<()> {
             }
             println!("{}", pipeline::format_times(&s.stages, s.peak_memory));
             println!(
-                "wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json}}",
+                "wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json, manifest.json}}",
                 args.output.display()
             );
             Ok(())

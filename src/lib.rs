@@ -11,12 +11,13 @@
 //!
 //! ## No import cycles
 //! The modules form an acyclic graph: a module refers only to modules upstream of it
-//! (`error`, `scene`, `mesh`, `sampling`, `simd`, `visibility`, `analytic`, `matrix`,
-//! `formfactor`, `repair`, `solve`, `output`, `store`, `pipeline`, then the consumers
-//! `study` and `bench`). The test `tests::module_graph_is_acyclic` at the bottom of this
-//! file checks it: it reads every file under `src/`, takes each `crate::MODULE` path in
-//! the code before the file's `#[cfg(test)]` (comments and doc links aside), and fails
-//! naming a cycle if there is one; `cargo test --lib module_graph` prints the graph.
+//! (`error`, `input`, `budget`, `scene`, `mesh`, `sampling`, `simd`, `visibility`,
+//! `analytic`, `matrix`, `formfactor`, `repair`, `solve`, `output`, `store`, `pipeline`,
+//! then the consumers `study` and `bench`). The test `tests::module_graph_is_acyclic` at
+//! the bottom of this file checks it: it reads every file under `src/`, takes each
+//! `crate::MODULE` path in the code before the file's `#[cfg(test)]` (comments and doc
+//! links aside), and fails naming a cycle if there is one; `cargo test --lib module_graph`
+//! prints the graph.
 //!
 //! ## Glossary (fixed meanings of names in code and docs)
 //! - `i`, `j`: patch indices; `x`, `y`: points on patches i and j; `n_x`, `n_y`: their normals.
@@ -29,9 +30,11 @@
 
 pub mod analytic;
 pub mod bench;
+pub mod budget;
 pub mod error;
 pub mod formfactor;
 pub mod hierarchy;
+pub mod input;
 pub mod matrix;
 pub mod mesh;
 pub mod output;

@@ -9,7 +9,7 @@
 //! is lost (Cohen and Wallace 1993, §5.3), so the pipeline scales those rows to sum to 1.
 
 use rayon::prelude::*;
-use sprs::{CsMat, TriMat};
+use sprs::CsMat;
 
 /// One estimated entry of a row: `F_ij` and its standard error.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -29,6 +29,14 @@ pub struct Row {
     pub entries: Vec<Entry>,
     /// Rays cast for this row.
     pub rays: u64,
+}
+
+/// True when a row sum `sum` with standard error `se` is over 1 by more than `k` standard
+/// errors and by more than rounding (`1e-9`): the one definition of a row "over one" that
+/// the diagnostics ([`Diagnostics::rows_over_one`], `k = 3`) and the repair's bounds
+/// ([`crate::repair::Bounds::significant`]) use. A physical row sums to at most 1.
+pub fn over_one(sum: f64, se: f64, k: f64) -> bool {
+    sum > 1.0 + (k * se).max(1e-9)
 }
 
 /// What [`repair_row_sums`] changed.
@@ -414,7 +422,7 @@ impl FormFactors {
     pub fn row_sum(&self, i: usize) -> f64 {
         self.f
             .outer_view(i)
-            .map(|r| r.data().iter().sum())
+            .map(|r| r.data().iter().sum::<f64>() + 0.0)
             .unwrap_or(0.0)
     }
 
@@ -492,13 +500,14 @@ impl FormFactors {
             &self.f.data()[lo..hi],
             &self.se[lo..hi],
         );
-        let s: f64 = vals.iter().sum();
+        // `+ 0.0`: the sum of no terms is -0.0, printed `-0.00000` for an empty row.
+        let s: f64 = vals.iter().sum::<f64>() + 0.0;
         let mut d = Diagnostics {
             min_row_sum: s,
             max_row_sum: s,
             max_row: i,
             empty_rows: usize::from(vals.is_empty()),
-            rows_over_one: usize::from(s > 1.0 + (3.0 * self.row_sum_stderr(i)).max(1e-9)),
+            rows_over_one: usize::from(over_one(s, self.row_sum_stderr(i), 3.0)),
             ..Default::default()
         };
         let (mut pairs, mut beyond) = (0usize, 0usize);
@@ -556,22 +565,12 @@ impl FormFactors {
         let se = (self.area[i] * se_ij).hypot(self.area[j] * se_ji);
         Some(gap > 3.0 * se && gap > 1e-12 * m)
     }
-
-    /// The matrix as triplets, for writers.
-    pub fn triplets(&self) -> TriMat<f64> {
-        let mut t = TriMat::with_capacity(self.f.shape(), self.f.nnz());
-        for (i, row) in self.f.outer_iterator().enumerate() {
-            for (j, &v) in row.iter() {
-                t.add_triplet(i, j, v);
-            }
-        }
-        t
-    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use sprs::TriMat;
 
     #[test]
     fn repair_scales_only_rows_past_the_bound() {
@@ -591,6 +590,24 @@ mod tests {
         assert!((s0 - 1.0).abs() < 1e-15);
         assert_eq!(g.get(1, 2), Some(&0.5));
         assert!(repair_row_sums(&f, &[[0.5; 3]; 3]).is_none());
+    }
+
+    #[test]
+    fn an_empty_row_sums_to_positive_zero() {
+        let rows = vec![
+            vec![],
+            vec![Entry {
+                j: 0,
+                f: 0.5,
+                se: 0.0,
+            }],
+        ];
+        let ff = FormFactors::from_rows(rows, vec![1.0; 2], 0, 0.0, "test".into(), 0);
+        let d = ff.diagnostics();
+        assert_eq!(
+            format!("{:.5} {:.5}", d.min_row_sum, ff.row_sum(0)),
+            "0.00000 0.00000"
+        );
     }
 
     /// The diagnostics with a binary search per back entry, row by row: the reference for

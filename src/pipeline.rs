@@ -5,9 +5,10 @@
 //! [`Observer`] hears about stage starts, progress and ends (the CLI draws bars from it),
 //! and the returned [`BakeSummary`] carries times, peak memory and accuracy figures.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use crate::budget;
 use crate::error::{Error, Result};
 use crate::formfactor::{
     self, AreaMc, Context, Estimator, Hemicube, Hemisphere, Nodes, Pattern, SemiAnalytic,
@@ -15,7 +16,7 @@ use crate::formfactor::{
 use crate::hierarchy;
 use crate::matrix::{Diagnostics, FormFactors};
 use crate::mesh::{PatchSet, Resolution};
-use crate::output::{self, Exposure};
+use crate::output::{self, Exposure, FolderKind};
 use crate::repair::{self, Repair, RepairReport};
 use crate::scene::Scene;
 use crate::solve::{self, Method, Options, SolveReport, System};
@@ -137,6 +138,9 @@ pub struct BakeConfig {
     /// Solve hierarchically with these settings instead of on the flat patch matrix
     /// ([`crate::hierarchy`]); `resolution` then sets the root patches.
     pub hierarchy: Option<hierarchy::Settings>,
+    /// Memory the run may plan to use, in bytes (`None`: what the system has available);
+    /// a larger estimate is refused before any work ([`crate::budget`]).
+    pub max_memory: Option<u64>,
 }
 
 impl Default for BakeConfig {
@@ -161,6 +165,7 @@ impl Default for BakeConfig {
             steps: Vec::new(),
             repair: Repair::None,
             hierarchy: None,
+            max_memory: None,
         }
     }
 }
@@ -268,6 +273,34 @@ impl Timer<'_> {
     }
 }
 
+/// Refuses a run whose memory estimate ([`budget::Estimate`]) exceeds `max_memory` (or
+/// the available memory), before the scene is meshed: `estimator` is `None` when the form
+/// factors are read from a folder, `preview` the preview size of a bake.
+pub fn check_budget(
+    scene: &Scene,
+    resolution: Resolution,
+    estimator: Option<&EstimatorChoice>,
+    method: Option<Method>,
+    preview: Option<(u32, u32)>,
+    max_memory: Option<u64>,
+) -> Result<()> {
+    let per_row = match estimator {
+        None => 0,
+        Some(EstimatorChoice::Hemisphere { strata, replicates }) => {
+            strata.saturating_mul(*strata).saturating_mul(*replicates)
+        }
+        Some(EstimatorChoice::Hemicube { res }) => res.saturating_mul(*res).saturating_mul(3),
+        Some(_) => usize::MAX,
+    };
+    let pixels = preview.map_or(0, |(w, h)| w as u64 * h as u64);
+    let estimate = |patches: usize| {
+        let dense = method == Some(Method::Direct) && patches <= solve::DIRECT_MAX_PATCHES;
+        budget::Estimate::new(patches, per_row, dense, pixels)
+    };
+    let patches = crate::mesh::expected_patches(scene, resolution).max(scene.faces.len());
+    budget::check(&estimate(patches), max_memory, estimate)
+}
+
 /// Computes the form factors of a patch set (builds the BVH as its own stage).
 pub fn form_factors(
     patches: &PatchSet,
@@ -280,7 +313,7 @@ pub fn form_factors(
         stages: Vec::new(),
     };
     let vis = timer.run("bvh", 0, || Visibility::new(patches))?;
-    let embree = vis.raw().version();
+    let embree = vis.embree_version();
     let est = estimator.build();
     let ctx = Context {
         patches,
@@ -343,6 +376,7 @@ pub fn write_step_previews(
     ff: &FormFactors,
     steps: &[usize],
     cfg: &BakeConfig,
+    dir: &Path,
     camera: &crate::scene::Camera,
     exposure: Exposure,
 ) -> Result<Vec<PathBuf>> {
@@ -356,7 +390,7 @@ pub fn write_step_previews(
         let verts = output::interpolate(patches, &b, cfg.crease_deg);
         let (w, h) = cfg.preview;
         let image = output::render_preview(&verts, camera, w, h, exposure);
-        let png = cfg.out_dir.join(format!("preview-step-{k:04}.png"));
+        let png = dir.join(format!("preview-step-{k:04}.png"));
         output::write_png(&png, &image)?;
         files.push(png);
     }
@@ -369,11 +403,20 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         obs,
         stages: Vec::new(),
     };
+    output::check_folder(&cfg.out_dir, FolderKind::Bake)?;
     let scene = timer.run("load", 0, || Scene::load(&cfg.scene))?;
     scene.require_emitter()?;
     if let Some(h) = &cfg.hierarchy {
         return bake_hierarchical(cfg, h, scene, timer);
     }
+    check_budget(
+        &scene,
+        cfg.resolution,
+        cfg.factors.is_none().then_some(&cfg.estimator),
+        Some(cfg.method),
+        Some(cfg.preview),
+        cfg.max_memory,
+    )?;
     let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
         let p = PatchSet::build(&scene, cfg.resolution)?;
         p.validate()?;
@@ -400,28 +443,39 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     let (b, report) = timer.run("solve", 0, || {
         solve_radiosity(&patches, &ff, cfg.method, &cfg.solve)
     })?;
-    if let Some(k) = b.iter().position(|v| v.iter().any(|c| !c.is_finite())) {
+    // The outputs store f32: a radiosity past its range would be written as infinite.
+    if let Some(k) = b
+        .iter()
+        .position(|v| v.iter().any(|&c| !(c as f32).is_finite()))
+    {
         return Err(Error::Scene {
             scene: scene.source.clone(),
-            msg: format!("the solve produced a non-finite radiosity at patch {k}"),
+            msg: format!(
+                "the solve produced radiosity {:?} at patch {k}, not finite in f32 (the EXR and \
+                 PLY store f32, up to {:e}): scale the emissions down",
+                b[k],
+                f32::MAX
+            ),
         });
     }
     let verts = timer.run("per-vertex", 0, || {
         output::interpolate(&patches, &b, cfg.crease_deg)
     });
     let files = timer.run("write", 0, || -> Result<Vec<PathBuf>> {
-        let (mut files, exposure) = write_bake(cfg, &scene, &verts)?;
-        if !cfg.steps.is_empty() {
-            files.extend(write_step_previews(
+        write_bake(cfg, &scene, &verts, |dir, camera, exposure| {
+            if cfg.steps.is_empty() {
+                return Ok(Vec::new());
+            }
+            write_step_previews(
                 &patches,
                 &ff,
                 &cfg.steps,
                 cfg,
-                &scene.camera_or_framing(),
+                dir,
+                camera,
                 Exposure::Fixed(exposure),
-            )?);
-        }
-        Ok(files)
+            )
+        })
     })?;
     Ok(BakeSummary {
         scene: scene.name.clone(),
@@ -443,24 +497,32 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     })
 }
 
-/// Writes `radiosity.exr`, `preview.png` and `mesh.ply` of a bake into `cfg.out_dir`;
-/// returns the files and the preview's exposure.
+/// Writes `radiosity.exr`, `preview.png` and `mesh.ply` of a bake, and what `extra`
+/// writes into the same folder (given the folder, the camera and the preview's exposure),
+/// as one folder ([`output::write_folder`]); returns the files' final paths.
 fn write_bake(
     cfg: &BakeConfig,
     scene: &Scene,
     verts: &output::VertexRadiosity,
-) -> Result<(Vec<PathBuf>, f32)> {
-    std::fs::create_dir_all(&cfg.out_dir).map_err(|e| Error::io(&cfg.out_dir, e))?;
-    let exr = cfg.out_dir.join("radiosity.exr");
-    output::write_exr(&exr, verts, &scene.name)?;
-    let camera = scene.camera_or_framing();
-    let (w, h) = cfg.preview;
-    let image = output::render_preview(verts, &camera, w, h, cfg.exposure);
-    let png = cfg.out_dir.join("preview.png");
-    output::write_png(&png, &image)?;
-    let ply = cfg.out_dir.join("mesh.ply");
-    output::write_ply(&ply, verts, image.exposure)?;
-    Ok((vec![exr, ply, png], image.exposure))
+    extra: impl FnOnce(&std::path::Path, &crate::scene::Camera, f32) -> Result<Vec<PathBuf>>,
+) -> Result<Vec<PathBuf>> {
+    let names = output::write_folder(&cfg.out_dir, FolderKind::Bake, |dir| {
+        output::write_exr(&dir.join("radiosity.exr"), verts, &scene.name)?;
+        let camera = scene.camera_or_framing();
+        let (w, h) = cfg.preview;
+        let image = output::render_preview(verts, &camera, w, h, cfg.exposure);
+        output::write_png(&dir.join("preview.png"), &image)?;
+        output::write_ply(&dir.join("mesh.ply"), verts, image.exposure)?;
+        let mut names: Vec<PathBuf> = vec![
+            "radiosity.exr".into(),
+            "mesh.ply".into(),
+            "preview.png".into(),
+        ];
+        let more = extra(dir, &camera, image.exposure)?;
+        names.extend(more.iter().filter_map(|p| p.file_name()).map(PathBuf::from));
+        Ok(names)
+    })?;
+    Ok(names.iter().map(|n| cfg.out_dir.join(n)).collect())
 }
 
 /// The hierarchical bake after loading: root patches, BVH, refine-and-solve passes, the
@@ -498,7 +560,9 @@ fn bake_hierarchical(
     let verts = timer.run("per-vertex", 0, || {
         output::interpolate(&leaves, &b, cfg.crease_deg)
     });
-    let files = timer.run("write", 0, || write_bake(cfg, &scene, &verts).map(|f| f.0))?;
+    let files = timer.run("write", 0, || {
+        write_bake(cfg, &scene, &verts, |_, _, _| Ok(Vec::new()))
+    })?;
     let r = sol.report;
     let last = r.passes.last().copied().unwrap_or_default();
     let solve = SolveReport {
@@ -548,7 +612,8 @@ pub struct FactorsSummary {
     pub peak_memory: u64,
 }
 
-/// Computes form factors for a scene and stores them in `out_dir` (see [`store`]).
+/// Computes form factors for a scene and stores them in `out_dir` (see [`store`]), within
+/// the available memory.
 pub fn factors(
     scene: &str,
     resolution: Resolution,
@@ -558,11 +623,31 @@ pub fn factors(
     repair: Repair,
     obs: &dyn Observer,
 ) -> Result<FactorsSummary> {
+    factors_within(
+        scene, resolution, estimator, seed, out_dir, repair, None, obs,
+    )
+}
+
+/// [`factors`] with a memory limit in bytes (`None`: the available memory), checked by
+/// [`check_budget`] before any work.
+#[allow(clippy::too_many_arguments)]
+pub fn factors_within(
+    scene: &str,
+    resolution: Resolution,
+    estimator: &EstimatorChoice,
+    seed: u64,
+    out_dir: &std::path::Path,
+    repair: Repair,
+    max_memory: Option<u64>,
+    obs: &dyn Observer,
+) -> Result<FactorsSummary> {
     let mut timer = Timer {
         obs,
         stages: Vec::new(),
     };
+    output::check_folder(out_dir, FolderKind::Factors)?;
     let scene = timer.run("load", 0, || Scene::load(scene))?;
+    check_budget(&scene, resolution, Some(estimator), None, None, max_memory)?;
     let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
         let p = PatchSet::build(&scene, resolution)?;
         p.validate()?;
@@ -572,7 +657,7 @@ pub fn factors(
     timer.stages.extend(stages);
     let (ff, repair_report) = timer.run("repair", 0, || repair::apply(ff, repair));
     let diagnostics = timer.run("diagnostics", 0, || ff.diagnostics());
-    let provenance = timer.run("write", 0, || store::write(out_dir, &patches, &ff))?;
+    let provenance = timer.run("write", 0, || store::write(out_dir, &patches, &ff, repair))?;
     Ok(FactorsSummary {
         provenance,
         diagnostics,
@@ -582,10 +667,7 @@ pub fn factors(
     })
 }
 
-/// Formats bytes as MiB with one decimal.
-pub fn mib(bytes: u64) -> String {
-    format!("{:.1} MiB", bytes as f64 / (1024.0 * 1024.0))
-}
+pub use crate::solve::mib;
 
 /// `time: STAGE SECONDS, ..., total SECONDS; peak memory MIB`: the last line of a summary.
 pub fn format_times(stages: &[StageTime], peak_memory: u64) -> String {

@@ -27,15 +27,15 @@
 
 use crate::matrix::FormFactors;
 
-/// Which constraints [`repair`] enforces.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// Which constraints [`repair`] enforces (also the command line's `--repair` values).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
 pub enum Repair {
-    /// Leave the matrix as estimated (still checked and reported).
+    /// Keep the estimates (rows over 1 are still reported).
     #[default]
     None,
-    /// `A_i F_ij = A_j F_ji` by error-weighted means.
+    /// A_i F_ij = A_j F_ji by error-weighted means.
     Reciprocity,
-    /// Rows sum to 1 (closed scenes), by a least-squares correction.
+    /// Rows sum to 1 by a least-squares correction (closed scenes only).
     Closure,
     /// Both, alternately until they hold together.
     Both,
@@ -73,9 +73,13 @@ pub struct Bounds {
 }
 
 impl Bounds {
-    /// Rows over 1 by more than `k` standard errors (not explained by the noise).
+    /// Rows over 1 by more than `k` standard errors (not explained by the noise; see
+    /// [`crate::matrix::over_one`]).
     pub fn significant(&self, k: f64) -> usize {
-        self.rows_over_one.iter().filter(|r| r.sigmas() > k).count()
+        self.rows_over_one
+            .iter()
+            .filter(|r| crate::matrix::over_one(r.sum, r.se, k))
+            .count()
     }
 
     /// One line for summaries.

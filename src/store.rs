@@ -5,28 +5,50 @@
 //!   `scipy.io.mmread`, Julia `MatrixMarket.mmread` and sprs read it);
 //! - `stderr.mtx`: the standard error of each stored entry, same pattern;
 //! - `patches.csv`: one row per patch: id, area, centroid, normal, material, rho, E;
-//! - `provenance.json`: estimator, seed, rays, crate version, scene, patch count and a hash
-//!   of the patch geometry.
+//! - `provenance.json`: the settings that shaped the matrix (estimator and its settings,
+//!   seed, patch edge length, repair), crate version, scene, patch count, a hash of the
+//!   patch geometry and the SHA-256 of each of the three files above;
+//! - `manifest.json`: the run that wrote the folder (see [`crate::output::folder`]).
 //!
-//! `bake --factors DIR` reads them back and refuses a folder whose patch count or geometry
-//! hash differs from the scene being baked: reflectances and emissions may change (they are
-//! not part of the hash), geometry and subdivision may not.
+//! The folder is written whole ([`write_folder`]): into a temporary sibling, renamed into
+//! place in one step. `bake --factors DIR` reads it back and refuses a folder whose patch
+//! count or geometry hash differs from the scene being baked (reflectances and emissions may
+//! change, they are not part of the hash; geometry and subdivision may not), or whose files
+//! are not the ones the provenance records (another run's matrix, an edited value). Malformed
+//! Matrix Market files are refused with the file and the first bad line, never trusted for
+//! an allocation: a header's entry count is capped by what the file's length can hold, every
+//! index is checked against the patch count, entries must come in the order this crate
+//! writes them (row by row, columns increasing: a repeated entry is an error), form factors
+//! must lie in `[0, 1]` and standard errors be finite and `>= 0`.
 
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
-use std::io::Write as _;
+use std::io::{BufRead, Read, Write as _};
 use std::path::Path;
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
 
 use crate::error::{Error, Result};
+use crate::input::open_regular;
 use crate::matrix::FormFactors;
 use crate::mesh::PatchSet;
-use crate::output::write_atomic;
+use crate::output::folder::{hex, sha256_file};
+use crate::output::{write_atomic, write_folder, FolderKind};
+use crate::repair::Repair;
+
+/// The folder layout version [`write`] produces and [`read`] accepts.
+pub const FORMAT: u32 = 2;
+
+/// The files whose SHA-256 the provenance records.
+pub const HASHED: [&str; 3] = ["F.mtx", "stderr.mtx", "patches.csv"];
 
 /// The provenance record stored beside a matrix.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Provenance {
+    /// Folder layout version ([`FORMAT`]).
+    pub format: u32,
     /// Crate name and version that wrote the folder.
     pub writer: String,
     /// Scene name.
@@ -45,6 +67,12 @@ pub struct Provenance {
     pub nnz: usize,
     /// Seconds the estimation took.
     pub seconds: f64,
+    /// Longest patch edge of the subdivision (scene units).
+    pub max_edge: f64,
+    /// The repair applied after estimation (`None`, `Reciprocity`, `Closure`, `Both`).
+    pub repair: String,
+    /// SHA-256 (lower-case hex) of each file of [`HASHED`], by name.
+    pub sha256: BTreeMap<String, String>,
 }
 
 /// FNV-1a (64-bit) of the patch corner positions and corner counts, as hex.
@@ -143,9 +171,54 @@ fn write_mtx_in(
     })
 }
 
-/// Writes the four files of a factors folder.
-pub fn write(dir: &Path, patches: &PatchSet, ff: &FormFactors) -> Result<Provenance> {
-    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+/// Writes a factors folder, whole (see the [module docs](self)). `repair` is the repair
+/// `ff` went through, recorded in the provenance.
+///
+/// Refuses (before writing anything) a matrix with an entry outside `[0, 1]` or a standard
+/// error that is negative or not finite: [`read`] would refuse it.
+pub fn write(
+    dir: &Path,
+    patches: &PatchSet,
+    ff: &FormFactors,
+    repair: Repair,
+) -> Result<Provenance> {
+    check_values(dir, ff)?;
+    write_folder(dir, FolderKind::Factors, |tmp| {
+        write_files(tmp, patches, ff, repair)
+    })
+}
+
+/// Refuses entries [`read`] would refuse.
+fn check_values(dir: &Path, ff: &FormFactors) -> Result<()> {
+    for (i, row) in ff.f.outer_iterator().enumerate() {
+        for (j, &f) in row.iter() {
+            if !(0.0..=1.0).contains(&f) {
+                return Err(Error::Output {
+                    path: dir.join("F.mtx"),
+                    msg: format!(
+                        "F({i}, {j}) is {f}, outside [0, 1]: not stored (raise --samples or \
+                         --replicates)"
+                    ),
+                });
+            }
+        }
+    }
+    if let Some(k) = ff.se.iter().position(|s| !(s.is_finite() && *s >= 0.0)) {
+        return Err(Error::Output {
+            path: dir.join("stderr.mtx"),
+            msg: format!("standard error {k} is {}, not stored", ff.se[k]),
+        });
+    }
+    Ok(())
+}
+
+/// The files of a factors folder, written into `dir`.
+fn write_files(
+    dir: &Path,
+    patches: &PatchSet,
+    ff: &FormFactors,
+    repair: Repair,
+) -> Result<Provenance> {
     write_mtx(&dir.join("F.mtx"), ff, ff.f.data())?;
     write_mtx(&dir.join("stderr.mtx"), ff, &ff.se)?;
     let mut csv =
@@ -176,7 +249,12 @@ pub fn write(dir: &Path, patches: &PatchSet, ff: &FormFactors) -> Result<Provena
     write_atomic(&csv_path, |tmp| {
         std::fs::write(tmp, &csv).map_err(|e| Error::io(tmp, e))
     })?;
+    let mut sha256 = BTreeMap::new();
+    for name in HASHED {
+        sha256.insert(name.to_string(), sha256_file(&dir.join(name))?.1);
+    }
     let prov = Provenance {
+        format: FORMAT,
         writer: format!("radiosity {}", env!("CARGO_PKG_VERSION")),
         scene: patches.scene.clone(),
         patches: patches.len(),
@@ -186,46 +264,344 @@ pub fn write(dir: &Path, patches: &PatchSet, ff: &FormFactors) -> Result<Provena
         rays: ff.rays,
         nnz: ff.f.nnz(),
         seconds: ff.seconds,
+        max_edge: patches.max_edge,
+        repair: format!("{repair:?}"),
+        sha256,
     };
+    let prov_path = dir.join("provenance.json");
     let json = serde_json::to_string_pretty(&prov).map_err(|e| Error::Output {
-        path: dir.join("provenance.json"),
+        path: prov_path.clone(),
         msg: e.to_string(),
     })?;
-    let prov_path = dir.join("provenance.json");
     write_atomic(&prov_path, |tmp| {
         std::fs::write(tmp, &json).map_err(|e| Error::io(tmp, e))
     })?;
     Ok(prov)
 }
 
-fn read_mtx(path: &Path, n: usize) -> Result<sprs::TriMat<f64>> {
-    let m: sprs::TriMat<f64> = sprs::io::read_matrix_market(path).map_err(|e| Error::Parse {
+/// Longest `provenance.json` read (it is a few hundred bytes).
+const MAX_PROVENANCE_BYTES: u64 = 1 << 20;
+
+/// Longest line of a Matrix Market file read (an entry line is under 60 bytes).
+const MAX_LINE: usize = 1024;
+
+/// Shortest entry line: `1 1 0` and a newline.
+const MIN_ENTRY_BYTES: u64 = 6;
+
+/// A matrix read by [`parse_mtx`], in CSR arrays.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct MtxRows {
+    /// Row pointers (`n + 1`).
+    pub indptr: Vec<usize>,
+    /// Column of each entry (0-based).
+    pub indices: Vec<usize>,
+    /// Value of each entry.
+    pub data: Vec<f64>,
+    /// SHA-256 of the bytes read, lower-case hex.
+    pub sha256: String,
+}
+
+/// Which values a Matrix Market file of a factors folder may hold.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Values {
+    /// Form factors: in `[0, 1]`.
+    FormFactors,
+    /// Standard errors: finite and `>= 0`.
+    StdErrors,
+}
+
+/// A reader that hashes what passes through it.
+struct Hashing<R> {
+    inner: R,
+    hasher: Sha256,
+}
+
+impl<R: Read> Read for Hashing<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let k = self.inner.read(buf)?;
+        self.hasher.update(&buf[..k]);
+        Ok(k)
+    }
+}
+
+/// Parses a Matrix Market file of a factors folder: `coordinate real general`, `n x n`,
+/// entries row by row with increasing columns, as [`write`] makes them. `bytes` is the
+/// file's length (it caps the header's entry count); `pattern`, when given, is the
+/// `(indptr, indices)` the entries must repeat (stderr.mtx follows F.mtx). `path` names the
+/// file in messages. Everything is read, so the hash covers the whole file.
+pub fn parse_mtx(
+    path: &Path,
+    input: impl Read,
+    bytes: u64,
+    n: usize,
+    values: Values,
+    pattern: Option<(&[usize], &[usize])>,
+) -> Result<MtxRows> {
+    let mut r = std::io::BufReader::new(Hashing {
+        inner: input,
+        hasher: Sha256::new(),
+    });
+    let mut line_no = 0usize;
+    let mut buf = Vec::with_capacity(128);
+    let bad = |line: usize, msg: String| Error::Parse {
         path: path.to_path_buf(),
-        line: None,
-        msg: format!("not a readable Matrix Market file: {e}"),
-    })?;
-    if m.rows() != n || m.cols() != n {
+        line: Some(line),
+        msg,
+    };
+    // The next line without its end; `None` at the end of the file.
+    let mut next_line = |r: &mut std::io::BufReader<Hashing<_>>, line_no: &mut usize| {
+        buf.clear();
+        let k = r
+            .by_ref()
+            .take(MAX_LINE as u64 + 1)
+            .read_until(b'\n', &mut buf)
+            .map_err(|e| Error::io(path, e))?;
+        if k == 0 {
+            return Ok(None);
+        }
+        *line_no += 1;
+        if buf.last() == Some(&b'\n') {
+            buf.pop();
+        } else if buf.len() > MAX_LINE {
+            return Err(bad(*line_no, format!("line longer than {MAX_LINE} bytes")));
+        }
+        match std::str::from_utf8(&buf) {
+            Ok(t) => Ok(Some(t.trim_end_matches('\r').to_string())),
+            Err(_) => Err(bad(*line_no, "not text (invalid UTF-8)".into())),
+        }
+    };
+    let header = next_line(&mut r, &mut line_no)?
+        .ok_or_else(|| bad(1, "empty file, not Matrix Market".into()))?;
+    let words: Vec<String> = header
+        .split_whitespace()
+        .map(|w| w.to_ascii_lowercase())
+        .collect();
+    if words.first().map(String::as_str) != Some("%%matrixmarket") {
+        return Err(bad(
+            1,
+            "no `%%MatrixMarket` header: not a Matrix Market file".into(),
+        ));
+    }
+    if words[1..] != ["matrix", "coordinate", "real", "general"] {
+        return Err(bad(
+            1,
+            format!(
+                "header `{header}`: a factors folder holds `matrix coordinate real general` \
+                 matrices only"
+            ),
+        ));
+    }
+    let size = loop {
+        match next_line(&mut r, &mut line_no)? {
+            None => return Err(bad(line_no, "no size line `ROWS COLS ENTRIES`".into())),
+            Some(l) if l.starts_with('%') || l.trim().is_empty() => continue,
+            Some(l) => break l,
+        }
+    };
+    let dims: Vec<u64> = size
+        .split_whitespace()
+        .map(|w| w.parse::<u64>())
+        .collect::<std::result::Result<_, _>>()
+        .ok()
+        .filter(|d: &Vec<u64>| d.len() == 3)
+        .ok_or_else(|| {
+            bad(
+                line_no,
+                format!("size line `{size}`: expected ROWS COLS ENTRIES"),
+            )
+        })?;
+    if dims[0] != n as u64 || dims[1] != n as u64 {
         return Err(Error::Mismatch {
             path: path.to_path_buf(),
             msg: format!(
                 "matrix is {}x{}, the scene has {n} patches",
-                m.rows(),
-                m.cols()
+                dims[0], dims[1]
             ),
         });
     }
+    let nnz = dims[2];
+    if nnz > bytes / MIN_ENTRY_BYTES || nnz > (n as u64).saturating_mul(n as u64) {
+        return Err(bad(
+            line_no,
+            format!(
+                "the header announces {nnz} entries; a {n} x {n} matrix in a file of {bytes} \
+                 bytes holds at most {}",
+                (bytes / MIN_ENTRY_BYTES).min((n as u64).saturating_mul(n as u64))
+            ),
+        ));
+    }
+    let nnz = nnz as usize;
+    let mut m = MtxRows {
+        indptr: Vec::with_capacity(n + 1),
+        indices: Vec::with_capacity(nnz),
+        data: Vec::with_capacity(nnz),
+        sha256: String::new(),
+    };
+    m.indptr.push(0);
+    let mut prev: Option<(usize, usize)> = None;
+    while let Some(l) = next_line(&mut r, &mut line_no)? {
+        if l.starts_with('%') || l.trim().is_empty() {
+            continue;
+        }
+        let k = m.data.len();
+        if k == nnz {
+            return Err(bad(
+                line_no,
+                format!("more entries than the header's {nnz}"),
+            ));
+        }
+        let mut w = l.split_whitespace();
+        let (Some(a), Some(b), Some(v), None) = (w.next(), w.next(), w.next(), w.next()) else {
+            return Err(bad(line_no, format!("`{l}`: expected ROW COLUMN VALUE")));
+        };
+        let index = |t: &str| t.parse::<usize>().ok().filter(|&x| x >= 1 && x <= n);
+        let (Some(i), Some(j)) = (index(a), index(b)) else {
+            return Err(bad(
+                line_no,
+                format!("`{l}`: row and column must be integers in 1..={n}"),
+            ));
+        };
+        let (i, j) = (i - 1, j - 1);
+        let value: f64 = v
+            .parse()
+            .map_err(|_| bad(line_no, format!("`{v}` is not a number")))?;
+        let ok = match values {
+            Values::FormFactors => (0.0..=1.0).contains(&value),
+            Values::StdErrors => value.is_finite() && value >= 0.0,
+        };
+        if !ok {
+            return Err(bad(
+                line_no,
+                match values {
+                    Values::FormFactors => {
+                        format!("F({i}, {j}) = {v} (a form factor lies in [0, 1])")
+                    }
+                    Values::StdErrors => {
+                        format!("standard error {v} (must be finite and >= 0)")
+                    }
+                },
+            ));
+        }
+        match prev {
+            Some(p) if p == (i, j) => {
+                return Err(bad(
+                    line_no,
+                    format!("entry ({a}, {b}) repeats the line before"),
+                ))
+            }
+            Some(p) if p > (i, j) => {
+                return Err(bad(
+                    line_no,
+                    format!(
+                        "entry ({a}, {b}) after ({}, {}): entries must come row by row, \
+                         columns increasing (each entry once)",
+                        p.0 + 1,
+                        p.1 + 1
+                    ),
+                ))
+            }
+            _ => {}
+        }
+        prev = Some((i, j));
+        if let Some((ptr, ind)) = pattern {
+            if ind.get(k) != Some(&j) || !(ptr[i] <= k && k < ptr[i + 1]) {
+                return Err(Error::Mismatch {
+                    path: path.to_path_buf(),
+                    msg: format!(
+                        "line {line_no}: entry ({a}, {b}) is not entry {} of F.mtx: the \
+                         standard errors do not have the pattern of F.mtx",
+                        k + 1
+                    ),
+                });
+            }
+        }
+        while m.indptr.len() <= i {
+            m.indptr.push(k);
+        }
+        m.indices.push(j);
+        m.data.push(value);
+    }
+    if m.data.len() != nnz {
+        return Err(bad(
+            line_no,
+            format!(
+                "the file ends after {} of the header's {nnz} entries",
+                m.data.len()
+            ),
+        ));
+    }
+    while m.indptr.len() <= n {
+        m.indptr.push(nnz);
+    }
+    m.sha256 = hex(&r.into_inner().hasher.finalize());
     Ok(m)
 }
 
-/// Reads a factors folder for `patches`, refusing it when it belongs to other geometry.
+/// Reads a Matrix Market file of the folder (see [`parse_mtx`]).
+fn read_mtx(
+    path: &Path,
+    n: usize,
+    values: Values,
+    pattern: Option<(&[usize], &[usize])>,
+) -> Result<MtxRows> {
+    let (file, bytes) = open_regular(path)?;
+    parse_mtx(path, file.take(bytes), bytes, n, values, pattern)
+}
+
+/// Refuses a file whose SHA-256 is not the one the provenance records.
+fn check_hash(dir: &Path, prov: &Provenance, name: &str, sha256: &str) -> Result<()> {
+    match prov.sha256.get(name) {
+        Some(want) if want == sha256 => Ok(()),
+        want => Err(Error::Mismatch {
+            path: dir.join(name),
+            msg: format!(
+                "SHA-256 {sha256}, provenance.json records {}: the file was changed or comes \
+                 from another run (run `radiosity factors` again)",
+                want.map_or("none", String::as_str)
+            ),
+        }),
+    }
+}
+
+/// Parses `provenance.json` text (`path` names it in messages).
+pub fn parse_provenance(path: &Path, text: &str) -> Result<Provenance> {
+    let prov: Provenance = serde_json::from_str(text).map_err(|e| Error::Parse {
+        path: path.to_path_buf(),
+        line: Some(e.line()),
+        msg: format!(
+            "{e} (not a factors folder of radiosity {}: run `radiosity factors` again)",
+            env!("CARGO_PKG_VERSION")
+        ),
+    })?;
+    if prov.format != FORMAT {
+        return Err(Error::Mismatch {
+            path: path.to_path_buf(),
+            msg: format!(
+                "folder format {} (this version reads {FORMAT}): run `radiosity factors` again",
+                prov.format
+            ),
+        });
+    }
+    Ok(prov)
+}
+
+/// Reads a factors folder for `patches`, refusing it when it belongs to other geometry or
+/// any of its files is not the one its provenance records.
 pub fn read(dir: &Path, patches: &PatchSet) -> Result<FormFactors> {
     let prov_path = dir.join("provenance.json");
-    let text = std::fs::read_to_string(&prov_path).map_err(|e| Error::io(&prov_path, e))?;
-    let prov: Provenance = serde_json::from_str(&text).map_err(|e| Error::Parse {
-        path: prov_path.clone(),
-        line: Some(e.line()),
-        msg: e.to_string(),
-    })?;
+    let (file, bytes) = open_regular(&prov_path)?;
+    if bytes > MAX_PROVENANCE_BYTES {
+        return Err(Error::Parse {
+            path: prov_path,
+            line: None,
+            msg: format!("{bytes} bytes: too long for a provenance record"),
+        });
+    }
+    let mut text = String::new();
+    file.take(MAX_PROVENANCE_BYTES)
+        .read_to_string(&mut text)
+        .map_err(|e| Error::io(&prov_path, e))?;
+    let prov = parse_provenance(&prov_path, &text)?;
     if prov.patches != patches.len() {
         return Err(Error::Mismatch {
             path: prov_path,
@@ -250,28 +626,27 @@ pub fn read(dir: &Path, patches: &PatchSet) -> Result<FormFactors> {
         });
     }
     let n = patches.len();
-    let f = read_mtx(&dir.join("F.mtx"), n)?;
-    let se = read_mtx(&dir.join("stderr.mtx"), n)?;
-    let f: sprs::CsMat<f64> = f.to_csr();
-    let se: sprs::CsMat<f64> = se.to_csr();
-    if f.indptr() != se.indptr() || f.indices() != se.indices() {
-        return Err(Error::Mismatch {
-            path: dir.join("stderr.mtx"),
-            msg: "the standard errors do not have the pattern of F.mtx".into(),
-        });
-    }
-    if let Some(k) = f.data().iter().position(|v| !v.is_finite() || *v < 0.0) {
-        return Err(Error::Parse {
-            path: dir.join("F.mtx"),
+    let csv_path = dir.join("patches.csv");
+    open_regular(&csv_path)?;
+    check_hash(dir, &prov, "patches.csv", &sha256_file(&csv_path)?.1)?;
+    let f = read_mtx(&dir.join("F.mtx"), n, Values::FormFactors, None)?;
+    check_hash(dir, &prov, "F.mtx", &f.sha256)?;
+    let se = read_mtx(
+        &dir.join("stderr.mtx"),
+        n,
+        Values::StdErrors,
+        Some((&f.indptr, &f.indices)),
+    )?;
+    check_hash(dir, &prov, "stderr.mtx", &se.sha256)?;
+    let f_path = dir.join("F.mtx");
+    let f =
+        sprs::CsMat::try_new((n, n), f.indptr, f.indices, f.data).map_err(|e| Error::Parse {
+            path: f_path,
             line: None,
-            msg: format!(
-                "entry {k} is {} (form factors are finite and >= 0)",
-                f.data()[k]
-            ),
-        });
-    }
+            msg: format!("not a valid sparse matrix: {}", e.3),
+        })?;
     Ok(FormFactors {
-        se: se.data().to_vec(),
+        se: se.data,
         f,
         area: patches.area.clone(),
         rays: prov.rays,
@@ -285,6 +660,100 @@ pub fn read(dir: &Path, patches: &PatchSet) -> Result<FormFactors> {
 mod tests {
     use super::*;
     use crate::matrix::Entry;
+
+    /// A valid 3 x 3 F.mtx body with `extra` lines appended and the header's count `nnz`.
+    fn mtx(header: &str, nnz: &str, entries: &str) -> String {
+        format!("%%MatrixMarket matrix coordinate {header}\n% comment\n3 3 {nnz}\n{entries}")
+    }
+
+    fn parse(text: &str, values: Values) -> Result<MtxRows> {
+        let p = Path::new("F.mtx");
+        parse_mtx(p, text.as_bytes(), text.len() as u64, 3, values, None)
+    }
+
+    #[test]
+    fn malformed_matrix_market_is_refused_with_its_line() {
+        let good = "1 2 5e-1\n1 3 2.5e-1\n3 1 1e0\n";
+        let m = parse(&mtx("real general", "3", good), Values::FormFactors).unwrap();
+        assert_eq!(m.indptr, [0, 2, 2, 3]);
+        assert_eq!(m.indices, [1, 2, 0]);
+        assert_eq!(m.data, [0.5, 0.25, 1.0]);
+        let cases: [(String, &str); 12] = [
+            (mtx("real symmetric", "3", good), "F.mtx:1: header"),
+            (
+                mtx("real general", "3", "1 2 0.5\n4 3 0.1\n3 1 1\n"),
+                "F.mtx:5:",
+            ),
+            (
+                mtx("real general", "3", "1 2 0.5\n1 0 0.1\n3 1 1\n"),
+                "F.mtx:5:",
+            ),
+            (
+                mtx("real general", "1000000000000000000", good),
+                "header announces",
+            ),
+            (
+                mtx("real general", "3", "1 2 0.5\n1 2 0.5\n3 1 1\n"),
+                "F.mtx:5: entry (1, 2) repeats",
+            ),
+            (
+                mtx("real general", "3", "1 3 0.5\n1 2 0.5\n3 1 1\n"),
+                "F.mtx:5: entry (1, 2) after (1, 3)",
+            ),
+            (
+                mtx("real general", "3", "1 2 5\n1 3 0.5\n3 1 1\n"),
+                "F.mtx:4: F(0, 1) = 5",
+            ),
+            (
+                mtx("real general", "3", "1 2 NaN\n1 3 0.5\n3 1 1\n"),
+                "F.mtx:4:",
+            ),
+            (
+                mtx("real general", "3", "1 2 -0.1\n1 3 0.5\n3 1 1\n"),
+                "F.mtx:4:",
+            ),
+            (
+                mtx("real general", "4", good),
+                "ends after 3 of the header's 4",
+            ),
+            (mtx("real general", "2", good), "F.mtx:6: more entries"),
+            (
+                mtx("real general", "3", "1 2 0.5 7\n1 3 0.5\n3 1 1\n"),
+                "F.mtx:4:",
+            ),
+        ];
+        for (text, want) in cases {
+            let e = parse(&text, Values::FormFactors).unwrap_err().to_string();
+            assert!(e.contains(want), "{text}\n  got {e}\n  expected {want}");
+        }
+        let e = parse(&mtx("real general", "1", "1 2 inf\n"), Values::StdErrors)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("F.mtx:4: standard error inf"), "{e}");
+        // A shape other than the scene's is a mismatch, not a parse error.
+        let e = parse(
+            "%%MatrixMarket matrix coordinate real general\n4 4 0\n",
+            Values::FormFactors,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("matrix is 4x4, the scene has 3 patches"), "{e}");
+        // No newline for gigabytes is refused at the first long line, not read to the end.
+        let long = format!("%%MatrixMarket{}", " ".repeat(5000));
+        let e = parse(&long, Values::FormFactors).unwrap_err().to_string();
+        assert!(e.contains("F.mtx:1: line longer than"), "{e}");
+    }
+
+    #[test]
+    fn a_device_is_not_read_as_a_matrix() {
+        let e = read_mtx(Path::new("/dev/zero"), 3, Values::FormFactors, None)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("/dev/zero") && e.contains("not a regular file"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn matrix_market_text_does_not_depend_on_the_pieces() {

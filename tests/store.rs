@@ -131,3 +131,57 @@ fn bake_reuses_factors_and_refuses_other_geometry() {
     assert!(stderr.contains("factors were computed for"), "{stderr}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_folder_with_another_runs_files_is_refused() {
+    let dir = temp_dir("mixed");
+    let est = EstimatorChoice::AreaStratified {
+        strata: 3,
+        replicates: 2,
+    };
+    let run = |seed: u64, name: &str| {
+        let out = dir.join(name);
+        pipeline::factors(
+            "cornell",
+            Resolution::Patches(60),
+            &est,
+            seed,
+            &out,
+            Repair::None,
+            &Quiet,
+        )
+        .expect("factors");
+        out
+    };
+    let (a, b) = (run(1, "a"), run(2, "b"));
+    radiosity::output::Manifest::read(&a)
+        .and_then(|m| m.verify(&a))
+        .expect("a whole folder");
+    let scene = Scene::load("cornell").expect("scene");
+    let patches = PatchSet::build(&scene, Resolution::Patches(60)).expect("patches");
+    store::read(&a, &patches).expect("the folder as written");
+
+    // Same geometry and patch count, another seed's matrix: refused, naming the file.
+    for f in ["F.mtx", "stderr.mtx"] {
+        std::fs::copy(b.join(f), a.join(f)).expect("copy");
+    }
+    let err = store::read(&a, &patches)
+        .expect_err("mixed folder")
+        .to_string();
+    assert!(err.contains("F.mtx") && err.contains("SHA-256"), "{err}");
+
+    // An edited value (doubled, still in [0, 1]) is refused the same way.
+    std::fs::copy(b.join("stderr.mtx"), a.join("stderr.mtx")).expect("copy");
+    let text = std::fs::read_to_string(b.join("F.mtx")).expect("F.mtx");
+    let mut lines: Vec<String> = text.lines().map(String::from).collect();
+    let k = lines.iter().position(|l| !l.starts_with('%')).unwrap() + 1;
+    let w: Vec<&str> = lines[k].split(' ').collect();
+    let doubled = w[2].parse::<f64>().unwrap() * 2.0;
+    lines[k] = format!("{} {} {doubled:e}", w[0], w[1]);
+    std::fs::write(a.join("F.mtx"), lines.join("\n") + "\n").expect("write");
+    let err = store::read(&a, &patches)
+        .expect_err("edited value")
+        .to_string();
+    assert!(err.contains("F.mtx"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

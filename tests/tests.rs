@@ -5,6 +5,7 @@ mod formfactors;
 mod geometry;
 mod hierarchy;
 mod invalid;
+mod reliability;
 mod shelf;
 mod stability;
 mod store;

@@ -52,12 +52,6 @@ impl Hemicube {
         (self.res.max(2) + 1) & !1
     }
 
-    /// Rays per row: `3 res²`.
-    pub fn rays_per_row(&self) -> usize {
-        let r = self.resolution();
-        3 * r * r
-    }
-
     /// Every cell as `(direction in the local frame (t, b, n), delta form factor)`.
     pub fn cells(&self) -> Vec<([f64; 3], f64)> {
         let res = self.resolution();

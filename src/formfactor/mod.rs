@@ -33,6 +33,53 @@ pub use hemicube::Hemicube;
 pub use hemisphere::Hemisphere;
 pub use semi::{Nodes, SemiAnalytic};
 
+/// The estimators, by name: the one list the command line (`--estimator`, through clap's
+/// [`clap::ValueEnum`]), the pipeline's configuration and the studies use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, clap::ValueEnum)]
+pub enum EstimatorKind {
+    /// Area-to-area Monte Carlo, independent uniform point pairs.
+    Uniform,
+    /// Area-to-area Monte Carlo, stratified point pairs.
+    Stratified,
+    /// Area-to-area randomized QMC: Owen-scrambled Sobol point pairs.
+    Sobol,
+    /// Hemisphere shooting: samples² cosine-weighted rays per patch and replicate.
+    Hemisphere,
+    /// Exact point-to-polygon factor over emitter points, times ray-traced visibility.
+    Semi,
+    /// Hemicube with `--samples` cells per side of the top face (deterministic).
+    Hemicube,
+}
+
+impl EstimatorKind {
+    /// All kinds, in table order.
+    pub const ALL: [EstimatorKind; 6] = [
+        EstimatorKind::Uniform,
+        EstimatorKind::Stratified,
+        EstimatorKind::Sobol,
+        EstimatorKind::Hemisphere,
+        EstimatorKind::Semi,
+        EstimatorKind::Hemicube,
+    ];
+
+    /// Name in tables, legends and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            EstimatorKind::Uniform => "uniform",
+            EstimatorKind::Stratified => "stratified",
+            EstimatorKind::Sobol => "sobol",
+            EstimatorKind::Hemisphere => "hemisphere",
+            EstimatorKind::Semi => "semi",
+            EstimatorKind::Hemicube => "hemicube",
+        }
+    }
+
+    /// True for estimators with randomness (and so error bars worth calibrating).
+    pub fn random(self) -> bool {
+        self != EstimatorKind::Hemicube
+    }
+}
+
 /// Everything an estimator may read while computing a row.
 pub struct Context<'a> {
     /// The patches.

@@ -1,6 +1,6 @@
 //! Patches: the scene's faces subdivided into small planar polygons.
 //!
-//! A patch is a handle ([`PatchId`], an index) into the flat arrays of a [`PatchSet`]:
+//! A patch is a handle (its index `i`, stored as `u32`) into the flat arrays of a [`PatchSet`]:
 //! corners, area, normal, centroid, material (the pbrt-v4 layout: no object owns geometry).
 //! Quads are split into an `nu x nv` grid of quads and triangles into `n^2` similar
 //! triangles, with `nu`, `nv`, `n` chosen so that no patch edge is longer than the target
@@ -18,9 +18,6 @@ use glam::{DVec3, Vec3};
 use crate::error::{Error, Result};
 use crate::scene::{Face, Material, Scene};
 
-/// Index of a patch in a [`PatchSet`].
-pub type PatchId = u32;
-
 /// Marks the missing 4th corner of a triangular patch.
 pub const NONE: u32 = u32::MAX;
 
@@ -35,7 +32,7 @@ pub enum Resolution {
     DiagonalFraction(f64),
 }
 
-/// The patches of a scene, as flat arrays indexed by [`PatchId`].
+/// The patches of a scene, as flat arrays indexed by patch.
 #[derive(Clone, Debug, Default)]
 pub struct PatchSet {
     /// Scene name, for messages and file headers.
@@ -450,30 +447,49 @@ fn sample_triangle(a: DVec3, b: DVec3, c: DVec3, u: f64, v: f64) -> DVec3 {
     a * b0 + b * (1.0 - b0 - b1) + c * b1
 }
 
+/// The number of patches [`PatchSet::build`] makes from `scene` with edge length `h`,
+/// without making them.
+pub fn patch_count(scene: &Scene, h: f64) -> usize {
+    scene
+        .faces
+        .iter()
+        .map(|f| {
+            let p: Vec<DVec3> = f
+                .corner_slice()
+                .iter()
+                .map(|&c| scene.positions[c as usize])
+                .collect();
+            if p.len() == 4 {
+                cells(p[1] - p[0], h)
+                    .max(cells(p[2] - p[3], h))
+                    .saturating_mul(cells(p[3] - p[0], h).max(cells(p[2] - p[1], h)))
+            } else {
+                let k = cells(p[1] - p[0], h)
+                    .max(cells(p[2] - p[1], h))
+                    .max(cells(p[0] - p[2], h));
+                k.saturating_mul(k)
+            }
+        })
+        .fold(0usize, usize::saturating_add)
+}
+
+/// About how many patches `res` gives for `scene` (exact for [`Resolution::MaxEdge`]).
+pub fn expected_patches(scene: &Scene, res: Resolution) -> usize {
+    match res {
+        Resolution::MaxEdge(h) if h > 0.0 && h.is_finite() => patch_count(scene, h),
+        Resolution::MaxEdge(_) => 0,
+        Resolution::Patches(n) => n,
+        Resolution::DiagonalFraction(f) if f > 0.0 && f.is_finite() => {
+            let (lo, hi) = scene.bounds();
+            patch_count(scene, f * (hi - lo).length())
+        }
+        Resolution::DiagonalFraction(_) => 0,
+    }
+}
+
 /// Finds the edge length that gives about `n` patches (within a few percent).
 fn edge_for_count(scene: &Scene, n: usize) -> f64 {
-    let count = |h: f64| -> usize {
-        scene
-            .faces
-            .iter()
-            .map(|f| {
-                let p: Vec<DVec3> = f
-                    .corner_slice()
-                    .iter()
-                    .map(|&c| scene.positions[c as usize])
-                    .collect();
-                if p.len() == 4 {
-                    cells(p[1] - p[0], h).max(cells(p[2] - p[3], h))
-                        * cells(p[3] - p[0], h).max(cells(p[2] - p[1], h))
-                } else {
-                    let k = cells(p[1] - p[0], h)
-                        .max(cells(p[2] - p[1], h))
-                        .max(cells(p[0] - p[2], h));
-                    k * k
-                }
-            })
-            .sum()
-    };
+    let count = |h: f64| patch_count(scene, h);
     // The count falls as h grows: bisect on log h between "one patch per face" and tiny.
     let (lo0, hi0) = scene.bounds();
     let mut hi = (hi0 - lo0).length() * 2.0;

@@ -121,12 +121,52 @@ pub fn write_exr(path: &Path, v: &VertexRadiosity, scene_name: &str) -> Result<(
         AnyChannels::sort(channels),
     );
     let image = Image::from_layer(layer);
+    let mut bytes = Vec::new();
+    image
+        .write()
+        .to_buffered(std::io::Cursor::new(&mut bytes))
+        .map_err(|e| exr_error(path, e, "cannot write the EXR file"))?;
+    sort_attributes(&mut bytes).ok_or_else(|| Error::Output {
+        path: path.to_path_buf(),
+        msg: "the EXR writer made a header this crate cannot read back".into(),
+    })?;
     write_atomic(path, |tmp| {
-        image
-            .write()
-            .to_file(tmp)
-            .map_err(|e| exr_error(tmp, e, "cannot write the EXR file"))
+        std::fs::write(tmp, &bytes).map_err(|e| Error::io(tmp, e))
     })
+}
+
+/// Puts the header attributes of a single-part EXR file in name order, in place, so that
+/// identical bakes are identical files: the exr crate writes custom attributes in the
+/// iteration order of a `HashMap`, which changes from run to run. OpenEXR readers accept
+/// attributes in any order, and the header keeps its length, so the offset table after it
+/// stays valid. `None` when the bytes are not a single-part header this function can walk.
+fn sort_attributes(bytes: &mut [u8]) -> Option<()> {
+    const MULTIPART: u8 = 0x10; // bit 12 of the version field
+    if bytes.get(..4)? != [0x76, 0x2f, 0x31, 0x01] || bytes.get(5)? & MULTIPART != 0 {
+        return None;
+    }
+    let zero = |from: usize| Some(from + bytes.get(from..)?.iter().position(|&b| b == 0)?);
+    let (start, mut at) = (8, 8);
+    let mut records = Vec::new();
+    loop {
+        let name_end = zero(at)?;
+        if name_end == at {
+            break;
+        }
+        let type_end = zero(name_end + 1)?;
+        let size = i32::from_le_bytes(bytes.get(type_end + 1..type_end + 5)?.try_into().ok()?);
+        let end = type_end + 5 + usize::try_from(size).ok()?;
+        bytes.get(at..end)?;
+        records.push((bytes[at..name_end].to_vec(), at..end));
+        at = end;
+    }
+    records.sort_by(|a, b| a.0.cmp(&b.0));
+    let sorted: Vec<u8> = records
+        .iter()
+        .flat_map(|(_, r)| bytes[r.clone()].to_vec())
+        .collect();
+    bytes[start..at].copy_from_slice(&sorted);
+    Some(())
 }
 
 /// Reads a bake written by [`write_exr`].
@@ -276,6 +316,24 @@ mod tests {
         let back = read_exr(&path).unwrap();
         assert_eq!(back.scene, "cornell ü");
         assert_bitwise_equal(&v, &back);
+    }
+
+    #[test]
+    fn identical_bakes_are_identical_files() {
+        // The attribute map's order changes with every map made; the file must not.
+        let dir = test_dir("exr-same-bytes");
+        let v = bake(300);
+        let files: Vec<Vec<u8>> = (0..8)
+            .map(|k| {
+                let path = dir.join(format!("bake-{k}.exr"));
+                write_exr(&path, &v, "cornell").unwrap();
+                assert_bitwise_equal(&v, &read_exr(&path).unwrap());
+                std::fs::read(&path).unwrap()
+            })
+            .collect();
+        for (k, f) in files.iter().enumerate() {
+            assert!(f == &files[0], "bake {k} differs from bake 0");
+        }
     }
 
     #[test]

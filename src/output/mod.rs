@@ -13,10 +13,13 @@
 //!   into an 8-bit sRGB image ([`render_preview`], [`write_png`]).
 //!
 //! Every writer goes through [`write_atomic`]: a file is either written whole or not at
-//! all, so an interrupted run never leaves a truncated bake that looks valid.
+//! all, so an interrupted run never leaves a truncated bake that looks valid. A run's files
+//! together go through [`write_folder`] ([`folder`]): a folder is whole, from one run, or
+//! absent.
 
 pub mod chart;
 pub mod exr;
+pub mod folder;
 pub mod ply;
 pub mod preview;
 pub mod vertex;
@@ -25,6 +28,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 pub use self::exr::{read_exr, write_exr, ExrBake};
+pub use self::folder::{check_folder, write_folder, FolderKind, Manifest};
 pub use self::ply::write_ply;
 pub use self::preview::{render_preview, write_png, Exposure, Image};
 pub use self::vertex::{interpolate, VertexRadiosity, DEFAULT_CREASE_DEG};
@@ -71,17 +75,25 @@ pub fn write_atomic(path: &Path, f: impl FnOnce(&Path) -> Result<()>) -> Result<
     result.map_err(|e| rename_path(e, &tmp, path))
 }
 
-/// Replaces `tmp` by `path` in an error that names a file.
+/// Replaces `tmp` by `path` in an error that names `tmp` or a file inside it.
 fn rename_path(e: Error, tmp: &Path, path: &Path) -> Error {
+    let swap = |p: PathBuf| match p.strip_prefix(tmp) {
+        Ok(rest) if rest.as_os_str().is_empty() => path.to_path_buf(),
+        Ok(rest) => path.join(rest),
+        Err(_) => p,
+    };
     match e {
-        Error::Io { path: p, source } if p == tmp => Error::Io {
-            path: path.to_path_buf(),
+        Error::Io { path: p, source } => Error::Io {
+            path: swap(p),
             source,
         },
-        Error::Output { path: p, msg } if p == tmp => Error::Output {
-            path: path.to_path_buf(),
+        Error::Output { path: p, msg } => Error::Output { path: swap(p), msg },
+        Error::Parse { path: p, line, msg } => Error::Parse {
+            path: swap(p),
+            line,
             msg,
         },
+        Error::Mismatch { path: p, msg } => Error::Mismatch { path: swap(p), msg },
         e => e,
     }
 }

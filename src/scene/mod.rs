@@ -13,6 +13,10 @@ use glam::{DVec3, Vec3};
 
 use crate::error::{Error, Result};
 
+/// Largest emission accepted: the radiosity, up to `E / (1 - rho)`, is written as f32
+/// (largest about 3.4e38), and rho may be as close to 1 as 1 - 1e-8.
+pub const MAX_EMIT: f64 = 1e30;
+
 /// A diffuse material: reflectance and emitted exitance per RGB channel.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Material {
@@ -46,6 +50,13 @@ impl Material {
             if !e.is_finite() || e < 0.0 {
                 return Err(format!(
                     "emission Ke channel {} is {e}, must be finite and >= 0",
+                    ["R", "G", "B"][c]
+                ));
+            }
+            if e > MAX_EMIT {
+                return Err(format!(
+                    "emission Ke channel {} is {e:e}, above {MAX_EMIT:e}: the radiosity \
+                     (up to E / (1 - rho)) is stored as f32 and would overflow",
                     ["R", "G", "B"][c]
                 ));
             }

@@ -21,13 +21,18 @@ use glam::{DVec3, Vec3};
 
 use super::{Camera, Face, Material, Scene};
 use crate::error::{Error, Result};
+use crate::input::{read_text, MAX_TEXT_BYTES};
 
 /// Reflectance given to faces that use no material, with a warning.
 const DEFAULT_RHO: f64 = 0.5;
 
 /// Loads an OBJ file; `mtllib` files are looked up next to it.
+///
+/// Only regular files are read (a FIFO or a device is refused without being opened), up to
+/// [`MAX_TEXT_BYTES`]; a byte that is not UTF-8 is refused with its line unless it is in a
+/// comment.
 pub fn load_file(path: &Path) -> Result<Scene> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let text = read_text(path, MAX_TEXT_BYTES)?;
     let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
     let name = path
         .file_stem()
@@ -35,7 +40,7 @@ pub fn load_file(path: &Path) -> Result<Scene> {
         .unwrap_or_default();
     parse(&name, path, &text, &|lib: &str| {
         let p = dir.join(lib);
-        let t = std::fs::read_to_string(&p).map_err(|e| Error::io(&p, e))?;
+        let t = read_text(&p, MAX_TEXT_BYTES)?;
         Ok((p, t))
     })
 }
@@ -45,6 +50,8 @@ struct Scan {
     mtllibs: Vec<(String, usize)>,
     usemtl: Vec<(String, usize)>,
     face_lines: Vec<usize>,
+    /// For each face, the `usemtl` line in force (an index into `usemtl`), if any.
+    face_usemtl: Vec<Option<usize>>,
     camera: Option<Camera>,
 }
 
@@ -65,6 +72,15 @@ pub fn parse(
                 line: Some(*line),
                 msg: format!("mtllib {}: {source}", p.display()),
             },
+            Error::Parse {
+                path: p,
+                line: None,
+                msg,
+            } => Error::Parse {
+                path: path.to_path_buf(),
+                line: Some(*line),
+                msg: format!("mtllib {}: {msg}", p.display()),
+            },
             other => other,
         })?;
         for m in parse_mtl(&mpath, &mtext)? {
@@ -75,16 +91,22 @@ pub fn parse(
             }
         }
     }
+    // Materials are assigned here from the `usemtl` lines, not by tobj: tobj appends
+    // the list its loader returns once per `mtllib` line, so its indices run past ours as
+    // soon as a file has two of them.
+    let mut usemtl_material = Vec::with_capacity(scan.usemtl.len());
     for (used, line) in &scan.usemtl {
-        if !materials.iter().any(|m| &m.name == used) {
-            return Err(Error::Parse {
+        let k = materials
+            .iter()
+            .position(|m| &m.name == used)
+            .ok_or_else(|| Error::Parse {
                 path: path.to_path_buf(),
                 line: Some(*line),
                 msg: format!("usemtl `{used}`: no such material in the mtllib files"),
-            });
-        }
+            })?;
+        usemtl_material.push(k as u32);
     }
-    let models = run_tobj(path, text, &materials)?;
+    let models = run_tobj(path, text)?;
 
     let mut scene = Scene {
         name: name.to_string(),
@@ -105,20 +127,6 @@ pub fn parse(
                 .chunks_exact(3)
                 .map(|p| DVec3::new(p[0], p[1], p[2])),
         );
-        let material = match mesh.material_id {
-            Some(k) => k as u32,
-            None => *default_material.get_or_insert_with(|| {
-                scene.materials.push(Material {
-                    name: "(none)".into(),
-                    rho: [DEFAULT_RHO; 3],
-                    emit: [0.0; 3],
-                });
-                scene.warnings.push(format!(
-                    "faces without a material get a grey default with rho = {DEFAULT_RHO}"
-                ));
-                (scene.materials.len() - 1) as u32
-            }),
-        };
         let mut start = 0usize;
         let n_faces = if mesh.face_arities.is_empty() {
             mesh.indices.len() / 3
@@ -137,7 +145,22 @@ pub fn parse(
                 .collect();
             start += arity;
             let line = scan.face_lines.get(face_no).copied().unwrap_or(0);
+            let used = scan.face_usemtl.get(face_no).copied().flatten();
             face_no += 1;
+            let material = match used {
+                Some(u) => usemtl_material[u],
+                None => *default_material.get_or_insert_with(|| {
+                    scene.materials.push(Material {
+                        name: "(none)".into(),
+                        rho: [DEFAULT_RHO; 3],
+                        emit: [0.0; 3],
+                    });
+                    scene.warnings.push(format!(
+                        "faces without a material get a grey default with rho = {DEFAULT_RHO}"
+                    ));
+                    (scene.materials.len() - 1) as u32
+                }),
+            };
             add_polygon(&mut scene, &idx, material, line);
         }
     }
@@ -183,11 +206,28 @@ fn parse_floats(
         .collect()
 }
 
+/// Refuses values that would not survive the conversion to f32 (Embree's vertex buffer,
+/// the preview camera and the output files hold f32): `1e39` would become infinite.
+fn check_f32(path: &Path, line: usize, what: &str, values: &[f64]) -> Result<()> {
+    match values.iter().find(|x| x.abs() > f32::MAX as f64) {
+        Some(x) => Err(Error::Parse {
+            path: path.to_path_buf(),
+            line: Some(line),
+            msg: format!(
+                "`{what}` value {x:e} is beyond the f32 range (|x| <= {:e}) it is stored in",
+                f32::MAX
+            ),
+        }),
+        None => Ok(()),
+    }
+}
+
 fn scan_lines(path: &Path, text: &str) -> Result<Scan> {
     let mut scan = Scan {
         mtllibs: Vec::new(),
         usemtl: Vec::new(),
         face_lines: Vec::new(),
+        face_usemtl: Vec::new(),
         camera: None,
     };
     let mut n_vertices = 0usize;
@@ -199,7 +239,8 @@ fn scan_lines(path: &Path, text: &str) -> Result<Scan> {
         };
         match key {
             "v" => {
-                parse_floats(path, line, "v", rest, 3)?;
+                let v = parse_floats(path, line, "v", rest, 3)?;
+                check_f32(path, line, "v", &v)?;
                 n_vertices += 1;
             }
             "f" => {
@@ -228,6 +269,7 @@ fn scan_lines(path: &Path, text: &str) -> Result<Scan> {
                     }
                 }
                 scan.face_lines.push(line);
+                scan.face_usemtl.push(scan.usemtl.len().checked_sub(1));
             }
             "mtllib" => {
                 for lib in rest {
@@ -258,10 +300,9 @@ fn parse_camera(path: &Path, line: usize, words: &[&str]) -> Result<Camera> {
         if !["eye", "target", "up", "fov"].contains(&key) {
             return Err(bad(&format!("unknown key `{key}`")));
         }
-        vals.insert(
-            key,
-            parse_floats(path, line, key, &words[(i + 1).min(words.len())..], n)?,
-        );
+        let v = parse_floats(path, line, key, &words[(i + 1).min(words.len())..], n)?;
+        check_f32(path, line, key, &v)?;
+        vals.insert(key, v);
         i += 1 + n;
     }
     let v3 = |k: &str| -> Result<Vec3> {
@@ -344,29 +385,18 @@ pub fn parse_mtl(path: &Path, text: &str) -> Result<Vec<Material>> {
     Ok(out.into_iter().map(|(m, _)| m).collect())
 }
 
-/// Runs tobj; when it fails, finds the first line whose prefix fails, for the message.
-fn run_tobj(path: &Path, text: &str, materials: &[Material]) -> Result<Vec<tobj::Model>> {
+/// Runs tobj for the geometry alone (materials come from [`Scan`]); when it fails, finds
+/// the first line whose prefix fails, for the message.
+fn run_tobj(path: &Path, text: &str) -> Result<Vec<tobj::Model>> {
     let opts = tobj::LoadOptions {
         triangulate: false,
         single_index: false,
         ignore_points: true,
         ignore_lines: true,
     };
-    let tobj_materials: Vec<tobj::Material> = materials
-        .iter()
-        .map(|m| tobj::Material {
-            name: m.name.clone(),
-            ..Default::default()
-        })
-        .collect();
     let load = |t: &str| {
         tobj::load_obj_buf(&mut BufReader::new(t.as_bytes()), &opts, |_| {
-            let map = materials
-                .iter()
-                .enumerate()
-                .map(|(k, m)| (m.name.clone(), k))
-                .collect();
-            Ok((tobj_materials.clone(), map))
+            Ok((Vec::new(), Default::default()))
         })
     };
     match load(text) {
@@ -491,6 +521,33 @@ mod tests {
         assert_eq!(s.faces[1].len(), 3);
         assert_eq!(s.faces[1].line, 8);
         assert!(s.materials[0].is_emitter());
+    }
+
+    #[test]
+    fn two_mtllib_lines_assign_the_right_materials() {
+        // The smallest fuzz case that panicked: the same `mtllib` twice, one `usemtl` face.
+        let obj = "mtllib m.mtl\nmtllib m.mtl\nusemtl w\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n";
+        let s = parse("t", Path::new("t.obj"), obj, &no_mtl).unwrap();
+        assert_eq!(s.materials.len(), 1);
+        assert_eq!(s.materials[s.faces[0].material as usize].name, "w");
+        // Two libraries, the second redefining a material of the first.
+        let libs = |lib: &str| -> Result<(PathBuf, String)> {
+            let text = match lib {
+                "a.mtl" => "newmtl red\nKd 0.5 0 0\nnewmtl lamp\nKe 1 1 1\n",
+                _ => "newmtl blue\nKd 0 0 0.5\nnewmtl red\nKd 0.6 0 0\n",
+            };
+            Ok((PathBuf::from(lib), text.into()))
+        };
+        let obj = "mtllib a.mtl\nmtllib b.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\n\
+                   usemtl blue\nf 1 2 3\nusemtl lamp\nf 1 2 3\nusemtl red\nf 1 2 3\nf 1 2 3\n";
+        let s = parse("t", Path::new("t.obj"), obj, &libs).unwrap();
+        let names: Vec<&str> = s
+            .faces
+            .iter()
+            .map(|f| s.materials[f.material as usize].name.as_str())
+            .collect();
+        assert_eq!(names, ["blue", "lamp", "red", "red"]);
+        assert_eq!(s.materials[s.faces[2].material as usize].rho[0], 0.6);
     }
 
     #[test]

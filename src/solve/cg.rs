@@ -38,14 +38,12 @@
 //! If `p^T M_s p <= 0` the symmetric form is not positive definite (rows of `F` summing above
 //! `1 / rho`): the run stops with [`Error::Singular`].
 
-use std::time::Instant;
-
 use rayon::prelude::*;
 use sprs::{CsMat, TriMat};
 
 use super::{
-    divergence, diverging, finish, gather, Gain, Options, Outcome, Rows, Scale, SolveReport,
-    Solver, System,
+    divergence, diverging, finish, gather, Options, Outcome, Prologue, Rows, SolveReport, Solver,
+    System,
 };
 use crate::error::{Error, Result};
 
@@ -124,14 +122,14 @@ impl Solver for Cg {
     }
 
     fn solve(&self, sys: &System, opts: &Options) -> Result<(Vec<[f64; 3]>, SolveReport)> {
-        let start = Instant::now();
-        opts.validate()?;
-        sys.validate()?;
+        let Prologue {
+            start,
+            rows,
+            scale,
+            gain,
+            mut notes,
+        } = Prologue::new(sys, opts)?;
         let n = sys.len();
-        let rows = Rows::new(sys.f);
-        let scale = Scale::new(sys.emit);
-        let gain = Gain::new(sys, &rows);
-        let mut notes = gain.notes();
         let (s, asym) = symmetrise(sys.f, sys.area);
         let srows = Rows::new(&s);
         let reciprocal = asym <= RECIPROCAL;

@@ -27,14 +27,12 @@
 //! - Still above tolerance after refinement: [`Error::NotConverged`]
 //!   (or the partial answer with `keep_partial`), with a hint about conditioning.
 
-use std::time::Instant;
-
 use dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::lu::partial_pivoting::{factor, solve as lu_solve};
 use faer::Mat;
 
 use super::{
-    abs_residual, finish, Gain, Options, Outcome, Rows, Scale, SolveReport, Solver, System,
+    abs_residual, finish, Gain, Options, Outcome, Prologue, Rows, SolveReport, Solver, System,
 };
 use crate::error::{Error, Result};
 
@@ -166,9 +164,13 @@ impl Solver for Direct {
     }
 
     fn solve(&self, sys: &System, opts: &Options) -> Result<(Vec<[f64; 3]>, SolveReport)> {
-        let start = Instant::now();
-        opts.validate()?;
-        sys.validate()?;
+        let Prologue {
+            start,
+            rows,
+            scale,
+            gain,
+            notes,
+        } = Prologue::new(sys, opts)?;
         let n = sys.len();
         if n > DIRECT_MAX_PATCHES {
             return Err(Error::Config(format!(
@@ -180,10 +182,6 @@ impl Solver for Direct {
                 2.0 / 3.0 * (n as f64).powi(3)
             )));
         }
-        let rows = Rows::new(sys.f);
-        let scale = Scale::new(sys.emit);
-        let gain = Gain::new(sys, &rows);
-        let notes = gain.notes();
         let factors = channel_groups(sys.rho)
             .into_iter()
             .map(|(c, members)| factorise(sys, &rows, c, members))

@@ -91,8 +91,8 @@ pub use gauss_seidel::GaussSeidel;
 pub use jacobi::Jacobi;
 pub use progressive::{ambient, ambient_term, progressive_steps, Progressive};
 
-/// Formats bytes as MiB with one decimal.
-pub(crate) fn mib(bytes: u64) -> String {
+/// Formats bytes as MiB with one decimal (memory needs in messages and summaries).
+pub fn mib(bytes: u64) -> String {
     format!("{:.1} MiB", bytes as f64 / (1024.0 * 1024.0))
 }
 
@@ -288,19 +288,19 @@ pub trait Solver {
     fn solve(&self, sys: &System, opts: &Options) -> Result<(Vec<[f64; 3]>, SolveReport)>;
 }
 
-/// The available solvers, by name.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+/// The available solvers, by name (also the command line's `--solver` values).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum Method {
-    /// [`Jacobi`].
+    /// Jacobi sweeps, rows in parallel ([`Jacobi`]).
     Jacobi,
-    /// [`GaussSeidel`].
+    /// Gauss-Seidel sweeps ([`GaussSeidel`]).
     #[default]
     GaussSeidel,
-    /// [`Progressive`].
+    /// Progressive refinement by shooting ([`Progressive`]).
     Progressive,
-    /// [`Cg`].
+    /// Preconditioned conjugate gradients on the symmetric form ([`Cg`]).
     Cg,
-    /// [`Direct`].
+    /// Dense LU with partial pivoting, up to 4096 patches ([`Direct`]).
     Direct,
 }
 
@@ -580,8 +580,32 @@ impl Gain {
         self.max() >= 1.0
     }
 
+    /// A bound on the condition number of `I - diag(rho) F` in the infinity norm, from the
+    /// gain `g` (`||A|| <= 1 + g`, `||A^-1|| <= 1 / (1 - g)`): `(1 + g) / (1 - g)`;
+    /// infinite when `g >= 1`.
+    pub(crate) fn condition_bound(&self) -> f64 {
+        let g = self.max();
+        if g < 1.0 {
+            (1.0 + g) / (1.0 - g)
+        } else {
+            f64::INFINITY
+        }
+    }
+
     /// The notes to put in a report before iterating.
     pub(crate) fn notes(&self) -> Vec<String> {
+        let cond = self.condition_bound();
+        if !self.suspicious() && cond > NEAR_SINGULAR {
+            return vec![format!(
+                "the system is near singular: rho * (row sum of F) reaches {:.7} at patch {} \
+                 (rho {:.7}), so its condition number may be up to {cond:.1e}; a relative \
+                 residual r bounds the relative error of B only by about {cond:.0e} x r \
+                 (lower --tolerance, or check reflectances this close to 1)",
+                self.max(),
+                self.patch,
+                self.rho
+            )];
+        }
         if self.suspicious() {
             vec![format!(
                 "rho * (row sum of F) reaches {:.4} at patch {} (row sum {:.4}, rho {:.3}): \
@@ -609,6 +633,10 @@ impl Gain {
         }
     }
 }
+
+/// Condition-number bound ([`Gain::condition_bound`]) above which a report notes that the
+/// system is near singular.
+pub(crate) const NEAR_SINGULAR: f64 = 1e5;
 
 /// True when a relative residual says the iteration is diverging.
 #[inline]
@@ -724,19 +752,49 @@ pub(crate) fn finish(
 /// residual of `b`, so each pass over `F` also measures the iterate it starts from. The
 /// loop returns the first iterate whose residual is within tolerance (the one the residual
 /// was computed for, so the reported residual is exact), or the last one at the cap.
+/// What every solver does first: starts the clock, checks the options and the system, and
+/// builds the row view of `F`, the residual scale and the gain bound with its notes.
+pub(crate) struct Prologue<'a> {
+    pub(crate) start: Instant,
+    pub(crate) rows: Rows<'a>,
+    pub(crate) scale: Scale,
+    pub(crate) gain: Gain,
+    pub(crate) notes: Vec<String>,
+}
+
+impl<'a> Prologue<'a> {
+    /// The prologue of a solve of `sys` with `opts`; fails on invalid options or system.
+    pub(crate) fn new(sys: &System<'a>, opts: &Options) -> Result<Prologue<'a>> {
+        let start = Instant::now();
+        opts.validate()?;
+        sys.validate()?;
+        let rows = Rows::new(sys.f);
+        let scale = Scale::new(sys.emit);
+        let gain = Gain::new(sys, &rows);
+        let notes = gain.notes();
+        Ok(Prologue {
+            start,
+            rows,
+            scale,
+            gain,
+            notes,
+        })
+    }
+}
+
 pub(crate) fn sweep_loop(
     solver: &str,
     sys: &System,
     opts: &Options,
     mut pass: impl FnMut(&Rows, &[[f64; 3]], &mut [[f64; 3]]) -> [f64; 3],
 ) -> Result<(Vec<[f64; 3]>, SolveReport)> {
-    let start = Instant::now();
-    opts.validate()?;
-    sys.validate()?;
-    let rows = Rows::new(sys.f);
-    let scale = Scale::new(sys.emit);
-    let gain = Gain::new(sys, &rows);
-    let notes = gain.notes();
+    let Prologue {
+        start,
+        rows,
+        scale,
+        gain,
+        notes,
+    } = Prologue::new(sys, opts)?;
     let mut b = sys.emit.to_vec();
     let mut next = b.clone();
     let mut history = Vec::new();
@@ -1154,6 +1212,28 @@ mod tests {
             // B_0 = 1 + 1.08 B_1, B_1 = 0.25 B_0.
             assert!((b[0][0] - 1.0 / (1.0 - 0.27)).abs() < 1e-10, "{method}");
         }
+    }
+
+    #[test]
+    fn near_singular_systems_are_noted() {
+        // A closed furnace at rho 0.999999: B = 1e6 exactly, condition number ~2e6. The CG
+        // and direct solvers reach the tolerance; the report must say what that is worth.
+        let owned = furnace(12, [0.999999; 3], [1.0; 3]);
+        for method in [Method::Cg, Method::Direct] {
+            let (_, report) = solve(method, &owned.sys(), &Options::default()).unwrap();
+            assert!(
+                report.notes.iter().any(|n| n.contains("near singular")),
+                "{method}: {:?}",
+                report.notes
+            );
+        }
+        let owned = furnace(12, [0.9; 3], [1.0; 3]);
+        let (_, report) = solve(Method::Cg, &owned.sys(), &Options::default()).unwrap();
+        assert!(
+            !report.notes.iter().any(|n| n.contains("near singular")),
+            "{:?}",
+            report.notes
+        );
     }
 
     #[test]

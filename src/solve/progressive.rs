@@ -43,13 +43,11 @@
 //! reflectance, and show `B_i + rho_i * ambient`. See [`ambient_term`], [`ambient`] and
 //! [`progressive_steps`].
 
-use std::time::Instant;
-
 use sprs::CsMat;
 
 use super::{
-    abs_residual, divergence, diverging, finish, max3, Gain, Options, Outcome, Rows, Scale,
-    SolveReport, Solver, System,
+    abs_residual, divergence, diverging, finish, max3, Gain, Options, Outcome, Prologue, Rows,
+    Scale, SolveReport, Solver, System,
 };
 use crate::error::Result;
 
@@ -134,13 +132,13 @@ impl Solver for Progressive {
     }
 
     fn solve(&self, sys: &System, opts: &Options) -> Result<(Vec<[f64; 3]>, SolveReport)> {
-        let start = Instant::now();
-        opts.validate()?;
-        sys.validate()?;
-        let rows = Rows::new(sys.f);
-        let scale = Scale::new(sys.emit);
-        let gain = Gain::new(sys, &rows);
-        let notes = gain.notes();
+        let Prologue {
+            start,
+            rows,
+            scale,
+            gain,
+            notes,
+        } = Prologue::new(sys, opts)?;
         let cols_f = transpose(sys.f);
         let cols = Rows::new(&cols_f);
         let mut state = State::new(sys);

@@ -37,51 +37,8 @@ use crate::visibility::Visibility;
 
 pub use configs::Config;
 
-/// The estimators compared.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum Kind {
-    /// Area-to-area, independent uniform point pairs.
-    Uniform,
-    /// Area-to-area, jittered strata.
-    Stratified,
-    /// Area-to-area, Owen-scrambled Sobol.
-    Sobol,
-    /// Hemisphere shooting.
-    Hemisphere,
-    /// Semi-analytic (Gauss nodes, ray visibility).
-    Semi,
-    /// Hemicube.
-    Hemicube,
-}
-
-impl Kind {
-    /// All kinds, in table order.
-    pub const ALL: [Kind; 6] = [
-        Kind::Uniform,
-        Kind::Stratified,
-        Kind::Sobol,
-        Kind::Hemisphere,
-        Kind::Semi,
-        Kind::Hemicube,
-    ];
-
-    /// Name in tables and legends.
-    pub fn name(self) -> &'static str {
-        match self {
-            Kind::Uniform => "uniform",
-            Kind::Stratified => "stratified",
-            Kind::Sobol => "sobol",
-            Kind::Hemisphere => "hemisphere",
-            Kind::Semi => "semi",
-            Kind::Hemicube => "hemicube",
-        }
-    }
-
-    /// True for estimators with randomness (and so error bars worth calibrating).
-    pub fn random(self) -> bool {
-        self != Kind::Hemicube
-    }
-}
+/// The estimators compared (the library's estimator names).
+pub use crate::formfactor::EstimatorKind as Kind;
 
 /// Replicates of every randomized estimator in the study. With `R` replicates the error
 /// bar is a t-statistic with `R - 1` degrees of freedom: for normal replicate means

@@ -47,7 +47,6 @@ pub struct EmbreeScene {
     device: sys::RTCDevice,
     scene: sys::RTCScene,
     sink: Box<ErrorSink>,
-    triangles: usize,
 }
 
 // SAFETY: Embree documents committed scenes as safe to query concurrently, and the device
@@ -173,7 +172,6 @@ impl EmbreeScene {
             device,
             scene,
             sink,
-            triangles: triangles.len(),
         };
         if scene.is_null() {
             return Err(this.error("rtcNewScene"));
@@ -236,11 +234,6 @@ impl EmbreeScene {
             sys::rtcReleaseGeometry(geom);
         }
         self.check("building the triangle geometry")
-    }
-
-    /// Number of triangles in the scene.
-    pub fn triangle_count(&self) -> usize {
-        self.triangles
     }
 
     /// The Embree version the library reports, as `major.minor.patch`.

@@ -26,7 +26,8 @@ use glam::{DVec3, Vec3};
 use crate::error::Result;
 use crate::mesh::PatchSet;
 
-pub use embree::{flush_denormals, EmbreeScene, HitPacket16};
+pub use embree::flush_denormals;
+pub(crate) use embree::{EmbreeScene, HitPacket16};
 
 /// Relative offset of ray ends from their surfaces, as a fraction of the scene diagonal.
 pub const OFFSET_REL: f32 = 1e-5;
@@ -210,9 +211,15 @@ impl Visibility {
         self.offsets
     }
 
-    /// The underlying Embree scene (for benchmarks of raw queries).
-    pub fn raw(&self) -> &EmbreeScene {
+    /// The underlying Embree scene, for the benchmark's raw query loops only: Embree
+    /// types do not leave the crate.
+    pub(crate) fn raw(&self) -> &EmbreeScene {
         &self.scene
+    }
+
+    /// The Embree version the library reports, as `major.minor.patch`.
+    pub fn embree_version(&self) -> String {
+        self.scene.version()
     }
 
     /// The segment from `x` (on a surface with unit normal `n_x`) to `y` (normal `n_y`),

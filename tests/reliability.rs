@@ -1,0 +1,122 @@
+//! The command line as a careless user or an attacker drives it: a file where a folder is
+//! expected, special files as inputs, runs too large for the machine, absurd counts. Each
+//! is refused with exit status 1 and a message saying what is wrong, without a panic and
+//! before any work.
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+fn temp_dir(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("radiosity-rel-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("temp folder");
+    d
+}
+
+fn radiosity(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_radiosity"))
+        .args(args)
+        .output()
+        .expect("binary runs")
+}
+
+/// Runs and expects a refusal whose message holds every one of `want`.
+fn refused(args: &[&str], want: &[&str]) {
+    let out = radiosity(args);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{args:?}: {stderr}");
+    assert!(!stderr.contains("panicked"), "{args:?}: {stderr}");
+    for w in want {
+        assert!(
+            stderr.contains(w),
+            "{args:?}:\n  got:      {stderr}\n  expected: {w}"
+        );
+    }
+}
+
+#[test]
+fn an_output_that_is_a_file_or_a_foreign_folder_is_refused() {
+    let dir = temp_dir("out");
+    let file = dir.join("notes.txt");
+    std::fs::write(&file, "mine").expect("write");
+    let f = file.to_str().unwrap();
+    refused(
+        &["bake", "--patches", "20", "-o", f],
+        &["notes.txt", "is not a folder"],
+    );
+    refused(
+        &["factors", "cornell", "--patches", "20", "-o", f],
+        &["is not a folder"],
+    );
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), "mine");
+    let d = dir.to_str().unwrap();
+    refused(
+        &["bake", "--patches", "20", "-o", d],
+        &["holds `notes.txt`"],
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn special_files_as_inputs_are_refused_without_blocking() {
+    refused(
+        &["bake", "/dev/zero", "--patches", "20"],
+        &["/dev/zero", "not a regular file"],
+    );
+    let dir = temp_dir("fifo");
+    let obj = dir.join("scene.obj");
+    std::fs::write(
+        &obj,
+        "mtllib pipe.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    )
+    .unwrap();
+    let made = Command::new("mkfifo").arg(dir.join("pipe.mtl")).status();
+    if made.is_ok_and(|s| s.success()) {
+        refused(
+            &["bake", obj.to_str().unwrap(), "--patches", "20"],
+            &["scene.obj:1", "pipe.mtl", "not a regular file"],
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn runs_too_large_are_refused_before_any_work() {
+    let dir = temp_dir("large");
+    let o = dir.join("out");
+    let o = o.to_str().unwrap();
+    refused(
+        &["bake", "--patches", "50000000", "-o", o],
+        &["50000000 patches", "--patches", "--max-memory"],
+    );
+    refused(
+        &["bake", "--patches", "2000", "--max-memory", "64M", "-o", o],
+        &["more than the 0.06 GiB --max-memory", "--patches"],
+    );
+    refused(
+        &["bake", "--max-edge", "1e-9", "-o", o],
+        &["patches, more than the 100000000 a run accepts"],
+    );
+    refused(
+        &["bake", "--size", "8192x8192", "--max-memory", "1G", "-o", o],
+        &["--size"],
+    );
+    refused(
+        &["bake", "--patches", "18446744073709551615"],
+        &["--patches must be at most"],
+    );
+    refused(
+        &["bake", "--replicates", "100000"],
+        &["--replicates must be between 2"],
+    );
+    // A malformed size is a usage error (clap's exit status 2).
+    let out = radiosity(&["bake", "--max-memory", "lots"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("--max-memory") && stderr.contains("4G"),
+        "{stderr}"
+    );
+    assert!(!PathBuf::from(o).exists(), "nothing may be written");
+    let _ = std::fs::remove_dir_all(&dir);
+}
