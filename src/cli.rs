@@ -539,7 +539,7 @@ fn study_bakes(args: &StudyBakesArgs) -> Result<()> {
             r.cpu,
             r.wall,
             pct(Some(r.face_max)),
-            pct(bakes::group_max(r, &refs, "contact")),
+            pct(bakes::group_max(r, &refs, "block-")),
             pct(bakes::group_max(r, &refs, "shadow"))
         );
     }

@@ -309,7 +309,7 @@ pub fn open_factor(ctx: &Context, l: u32, s: u32, f_tol: f64) -> (f64, u64) {
 
 /// Kernel-weighted visible fraction between `r` and `s` from `rays²` traced segments, and
 /// the number of rays traced.
-fn visible_fraction(ctx: &Context, r: u32, s: u32) -> (f64, u64) {
+pub fn visible_fraction(ctx: &Context, r: u32, s: u32) -> (f64, u64) {
     let e = ctx.elements;
     let (nr, ns) = (e.normal[r as usize], e.normal[s as usize]);
     let n = ctx.rays.max(1);

@@ -330,8 +330,9 @@ pub fn run(
                 quadrature: s.quadrature,
                 tol,
             };
-            let (gather, evals) = gather_lists(&ctx, &links, &rho, &state.b, s.accuracy * eps);
-            report.evals += evals;
+            let (gather, cost) = gather_lists(&ctx, &links, &rho, &state.b, s.accuracy * eps);
+            report.evals += cost.evals;
+            report.rays += cost.rays;
             report.gather = gather.len();
             report.max_row_sum = (0.0, 0.0);
             report.rows_over_one = 0;
@@ -492,7 +493,8 @@ fn evaluate_into(
 
 /// The leaves' gather lists: for each leaf, its own links as they are, and for every link
 /// `a ← s` of an ancestor `a`, the leaf's own unoccluded factor to `s` times the link's
-/// visible fraction (discounted for buried parts of `a`); see [`solve`]. `budget` sets the
+/// visibility: the link's when it is wholly visible, the leaf's own, traced, when the link
+/// is partly visible; see [`solve`]. `budget` sets the
 /// absolute tolerance of each factor as in [`factor_tolerances`]. Returns the lists and the
 /// point-factor evaluations spent.
 fn gather_lists(
@@ -501,50 +503,50 @@ fn gather_lists(
     rho: &[[f64; 3]],
     b: &[[f64; 3]],
     budget: f64,
-) -> (Gather, u64) {
+) -> (Gather, Cost) {
     let e = ctx.elements;
-    let vis = e.visible_areas();
     let leaves: Vec<u32> = e.leaves().collect();
-    // Per leaf: (source, factor, error bar) entries and the evaluations spent.
-    type Entries = (Vec<(u32, f64, f64)>, u64);
+    // Per leaf: (source, factor, error bar) entries and the work spent.
+    type Entries = (Vec<(u32, f64, f64)>, Cost);
     let per_leaf: Vec<Entries> = leaves
         .par_iter()
         .map(|&l| {
             let mut out: Vec<(u32, f64, f64)> = Vec::new();
-            let mut evals = 0u64;
+            let mut cost = Cost::default();
             if e.buried[l as usize] {
-                return (out, 0);
+                return (out, cost);
             }
             out.extend(links[l as usize].iter().map(|k| (k.src, k.f, k.err)));
+            let n = (ctx.rays * ctx.rays) as f64;
             let mut a = e.parent[l as usize];
             while a != element::NONE {
-                let ai = a as usize;
-                let discount = if vis[ai] > 0.0 {
-                    e.area[ai] / vis[ai]
-                } else {
-                    1.0
-                };
-                for k in &links[ai] {
+                for k in &links[a as usize] {
                     let w = (0..3)
                         .map(|c| rho[l as usize][c] * b[k.src as usize][c])
                         .fold(0.0, f64::max);
                     let f_tol = if w > 0.0 { budget / w } else { f64::INFINITY };
-                    let (f, n) = link::open_factor(ctx, l, k.src, f_tol);
-                    evals += n;
-                    if f > 0.0 {
-                        // The link's relative error carries over to the leaf's factor; a
-                        // partly visible link says nothing of where in `a` the shadow
-                        // falls, so the leaf's visible fraction is bounded only by 0 and 1.
-                        let rel = if k.f > 0.0 { k.err / k.f } else { 0.0 };
-                        let v = (k.vis * discount).min(1.0);
-                        let fl = f * v;
-                        let shadow = if k.partial { f * v.max(1.0 - v) } else { 0.0 };
-                        out.push((k.src, fl, fl * rel + shadow + f_tol.min(ctx.quadrature * f)));
+                    let (f, evals) = link::open_factor(ctx, l, k.src, f_tol);
+                    cost.evals += evals;
+                    if f <= 0.0 {
+                        continue;
+                    }
+                    // A partly visible link says nothing of where in `a` its shadow falls:
+                    // the leaf's own visible fraction is traced (streams keyed on the leaf
+                    // and the source, as for a link).
+                    let (v, bar) = if k.partial {
+                        let (v, rays) = link::visible_fraction(ctx, l, k.src);
+                        cost.rays += rays;
+                        (v, (v * (1.0 - v) / n).sqrt())
+                    } else {
+                        (k.vis, if k.f > 0.0 { k.err / k.f } else { 0.0 })
+                    };
+                    if v > 0.0 {
+                        out.push((k.src, f * v, f * bar + f_tol.min(ctx.quadrature * f)));
                     }
                 }
-                a = e.parent[ai];
+                a = e.parent[a as usize];
             }
-            (out, evals)
+            (out, cost)
         })
         .collect();
     let mut g = Gather {
@@ -552,10 +554,10 @@ fn gather_lists(
         start: Vec::with_capacity(per_leaf.len() + 1),
         ..Default::default()
     };
-    let mut evals = 0;
+    let mut cost = Cost::default();
     g.start.push(0);
-    for (list, n) in per_leaf {
-        evals += n;
+    for (list, c) in per_leaf {
+        cost += c;
         let (mut sum, mut bar) = (0.0, 0.0);
         for (s, f, err) in list {
             g.src.push(s);
@@ -566,7 +568,7 @@ fn gather_lists(
         g.start.push(g.src.len());
         g.row_sum.push((sum, bar));
     }
-    (g, evals)
+    (g, cost)
 }
 
 /// Refines links until none needs it (or the link cap); returns the number replaced.

@@ -10,9 +10,11 @@
 //! along the chain: in the closed cube, leaves at the corners summed their factors to
 //! 1.3 at a link tolerance of 2%, so a furnace came out non-uniform and power was not
 //! conserved. Here each leaf `l` under a link `a ← s` uses its own unoccluded factor
-//! `F(l → s)` (the exact integral, [`super::link::open_factor`]) times the link's visible
-//! fraction; blocked rays from buried parts of `a` are discounted (`v A_a / A_vis,a`, at
-//! most 1). The coarse link still decides what the receiver sees of `s` and how finely
+//! `F(l → s)` (the exact integral, [`super::link::open_factor`]) times a visible fraction:
+//! the link's when the link is wholly visible, and the leaf's own, traced like a link's,
+//! when it is partly visible (a coarse link's mean visibility says nothing of where its
+//! shadow falls: beside a box, leaves in its shade would get the light of the open floor).
+//! The coarse link still decides what the receiver sees of `s` and how finely
 //! `s` is resolved, so the cost stays that of the links (the gather lists are as long as
 //! the leaves' ancestor chains). Because `Σ_s F(l → s) = 1` for every leaf of a closed
 //! scene, the closed cube gives `B = E / (1 - ρ)` on every leaf and emitted power equals

@@ -113,13 +113,33 @@ pub fn read_reference(path: &Path) -> Result<Vec<Probe>> {
     Ok(out)
 }
 
-/// Area-weighted mean radiosity of each scene face (index = face), from patches (or
-/// leaves) `set` with values `b`; zero-area patches (buried leaves) carry no weight.
-pub fn face_averages(set: &PatchSet, b: &[[f64; 3]], faces: usize) -> Vec<Option<[f64; 3]>> {
+/// The OBJ face (0-based, in file order) each scene face came from: the loader splits a
+/// non-planar or larger polygon into several scene faces, all from one line.
+pub fn obj_faces(scene: &Scene) -> Vec<usize> {
+    let mut lines: Vec<u32> = scene.faces.iter().map(|f| f.line).collect();
+    lines.sort_unstable();
+    lines.dedup();
+    scene
+        .faces
+        .iter()
+        .map(|f| lines.binary_search(&f.line).unwrap_or(0))
+        .collect()
+}
+
+/// Area-weighted mean radiosity of each OBJ face (index: [`obj_faces`]), from patches (or
+/// leaves) `set` with values `b` and areas `areas` (for leaves, their whole areas: buried
+/// ones count with their radiosity 0, as the reference's face averages do).
+pub fn face_averages(
+    set: &PatchSet,
+    obj_face: &[usize],
+    areas: &[f64],
+    b: &[[f64; 3]],
+    faces: usize,
+) -> Vec<Option<[f64; 3]>> {
     let mut sum = vec![[0.0; 3]; faces];
     let mut area = vec![0.0; faces];
     for (k, &f) in set.face.iter().enumerate() {
-        let (f, a) = (f as usize, set.area[k]);
+        let (f, a) = (obj_face[f as usize], areas[k]);
         if f < faces && a > 0.0 {
             for c in 0..3 {
                 sum[f][c] += a * b[k][c];
@@ -211,15 +231,18 @@ pub fn cpu_seconds() -> f64 {
 }
 
 /// Scores one bake against the reference.
+#[allow(clippy::too_many_arguments)]
 fn score(
     refs: &[Probe],
+    obj_face: &[usize],
     set: &PatchSet,
+    areas: &[f64],
     b: &[[f64; 3]],
     verts: &VertexRadiosity,
     faces: usize,
     diag: f64,
 ) -> (f64, Vec<Option<f64>>) {
-    let avg = face_averages(set, b, faces);
+    let avg = face_averages(set, obj_face, areas, b, faces);
     let mut face_max = 0.0f64;
     let mut points = Vec::new();
     for r in refs {
@@ -227,6 +250,9 @@ fn score(
         if r.kind == "face" {
             if let Some(Some(got)) = r.id.parse::<usize>().ok().and_then(|f| avg.get(f)) {
                 face_max = face_max.max((luminance(*got) - want).abs() / want);
+                if std::env::var("FACEDBG").is_ok() {
+                    eprintln!("face {} {}: got {:.5} want {:.5} ({:+.2}%)", r.id, r.note.split(';').next().unwrap_or(""), luminance(*got), want, 100.0 * (luminance(*got) / want - 1.0));
+                }
             }
         } else if r.kind == "point" {
             points.push(
@@ -270,7 +296,8 @@ impl Settings {
 pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
     let refs = read_reference(&s.reference)?;
     let scene = Scene::load(&s.scene)?;
-    let faces = scene.faces.len();
+    let obj = obj_faces(&scene);
+    let faces = obj.iter().max().map_or(0, |m| m + 1);
     let mut runs = Vec::new();
     for &n in &s.flat {
         let (c0, t0) = (cpu_seconds(), std::time::Instant::now());
@@ -281,7 +308,8 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
             pipeline::solve_radiosity(&patches, &ff, Method::GaussSeidel, &Options::default())?;
         let verts = interpolate(&patches, &b, 30.0);
         let (cpu, wall) = (cpu_seconds() - c0, t0.elapsed().as_secs_f64());
-        let (face_max, points) = score(&refs, &patches, &b, &verts, faces, patches.diagonal);
+        let (face_max, points) =
+            score(&refs, &obj, &patches, &patches.area, &b, &verts, faces, patches.diagonal);
         runs.push(Run {
             method: BakeKind::Flat(n),
             patches: patches.len(),
@@ -299,13 +327,16 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
         let vis = Visibility::new(&patches)?;
         let settings = hierarchy::Settings {
             error: err,
+            rays: std::env::var("LRAYS").ok().and_then(|v| v.parse().ok()).unwrap_or(4),
             ..Default::default()
         };
         let sol = hierarchy::run(&patches, &vis, &settings, &|_| {})?;
-        let (leaves, b, _) = leaf_mesh(&sol.elements, &patches, &sol.state.b);
+        let (leaves, b, ids) = leaf_mesh(&sol.elements, &patches, &sol.state.b);
         let verts = interpolate(&leaves, &b, 30.0);
         let (cpu, wall) = (cpu_seconds() - c0, t0.elapsed().as_secs_f64());
-        let (face_max, points) = score(&refs, &leaves, &b, &verts, faces, patches.diagonal);
+        let areas: Vec<f64> = ids.iter().map(|&l| sol.elements.area[l as usize]).collect();
+        let (face_max, points) =
+            score(&refs, &obj, &leaves, &areas, &b, &verts, faces, patches.diagonal);
         runs.push(Run {
             method: BakeKind::Hierarchical(err),
             patches: sol.report.leaves,
@@ -369,7 +400,7 @@ fn write(s: &Settings, runs: &[Run], refs: &[Probe]) -> Result<()> {
             r.cpu,
             r.wall,
             r.face_max,
-            fmt(group_max(r, refs, "contact")),
+            fmt(group_max(r, refs, "block-")),
             fmt(group_max(r, refs, "shadow")),
             fmt(all)
         );
@@ -403,7 +434,7 @@ fn write(s: &Settings, runs: &[Run], refs: &[Probe]) -> Result<()> {
             }
             let title = format!("Cornell box: {what} vs {x_label} (reference: Mitsuba 3)");
             chart(
-                &s.out.join(format!("{word}-vs-{tag}")),
+                &s.out.join(format!("{}-vs-{tag}", word.trim_end_matches('-'))),
                 &Spec {
                     title: &title,
                     x_label,
