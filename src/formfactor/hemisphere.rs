@@ -30,7 +30,7 @@ use glam::Vec3;
 
 use super::{Context, Entry, Estimator, Row};
 use crate::sampling::{below, hashed_permutation, jitter4, SplitMix};
-use crate::visibility::{Rays, NO_HIT};
+use crate::visibility::{Rays, Tracer, NO_HIT};
 
 /// Rays made, traced and counted together: a chunk's sampling buffers (about 24 KB) stay
 /// in a 48 KB L1 data cache beside Embree's traversal data.
@@ -107,10 +107,7 @@ impl Estimator for Hemisphere {
     }
 
     fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
-        let vis = ctx.vis;
-        self.row_with(ctx, i, row, &mut |rays, out| {
-            vis.first_front_hits_soa(rays, out)
-        });
+        self.row_with(ctx, i, row, ctx.vis);
     }
 }
 
@@ -225,37 +222,23 @@ thread_local! {
 }
 
 impl Hemisphere {
-    /// Row `i` with `first_hits(rays, out)` answering the closest-hit query for a batch of
-    /// rays (structure of arrays; origins already offset off patch i, see
-    /// [`crate::visibility::Visibility::first_hit_origin`]): `out[k]` is the patch whose
-    /// front side ray k meets first, or [`NO_HIT`] (see
-    /// [`crate::visibility::Visibility::first_front_hits_soa`]). One batch per replicate; the rays asked for do not depend on the
-    /// answers, so a recorder sees the exact ray set.
-    pub fn row_with(
-        &self,
-        ctx: &Context,
-        i: usize,
-        row: &mut Row,
-        first_hits: &mut dyn FnMut(&Rays, &mut [u32]),
-    ) {
+    /// Row `i` with `tracer` answering the closest-hit query ([`Tracer::first_front_hits`])
+    /// for batches of rays (origins already offset off patch i, see
+    /// [`crate::visibility::Visibility::first_hit_origin`]; [`NO_HIT`] for a miss or a back
+    /// side met first), one batch per chunk of a replicate; the rays asked for do not
+    /// depend on the answers, so a recorder sees the exact ray set.
+    pub fn row_with(&self, ctx: &Context, i: usize, row: &mut Row, tracer: &dyn Tracer) {
         SCRATCH.with(|s| {
             let s = &mut s.borrow_mut();
             crate::simd::with_widest(
                 #[inline(always)]
-                || self.row_in(ctx, i, row, first_hits, s),
+                || self.row_in(ctx, i, row, tracer, s),
             )
         });
     }
 
     #[inline(always)]
-    fn row_in(
-        &self,
-        ctx: &Context,
-        i: usize,
-        row: &mut Row,
-        first_hits: &mut dyn FnMut(&Rays, &mut [u32]),
-        s: &mut Scratch,
-    ) {
+    fn row_in(&self, ctx: &Context, i: usize, row: &mut Row, tracer: &dyn Tracer, s: &mut Scratch) {
         let p = ctx.patches;
         let reps = self.replicates.max(2);
         let st = self.strata.max(1);
@@ -320,7 +303,7 @@ impl Hemisphere {
                     org: [&o[0][..len], &o[1][..len], &o[2][..len]],
                     dir: [&d[0][..len], &d[1][..len], &d[2][..len]],
                 };
-                first_hits(&rays, &mut s.hits[..len]);
+                tracer.first_front_hits(&rays, &mut s.hits[..len]);
                 // Count front-side hits per (patch, replicate), without branches: a miss
                 // (or a back side met first) and a hit on patch i itself count in the
                 // spare slot n.

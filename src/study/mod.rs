@@ -165,10 +165,7 @@ pub fn run_one(p: &Prepared, kind: Kind, budget: usize, seed: u64) -> Run {
                 replicates: REPLICATES,
             };
             let (a, b) = (i.min(j), i.max(j));
-            area.pair_with(&ctx, a, b, &mut row.rays, &mut |segs, out| {
-                p.vis.segments_visible_soa(segs, out)
-            })
-            .map(|e| {
+            area.pair_with(&ctx, a, b, &mut row.rays, &p.vis).map(|e| {
                 if a == i {
                     (e.f, e.se)
                 } else {
