@@ -4,8 +4,8 @@
 //! compares numbers taken in the same run (interleaved, median of `repeats`).
 //!
 //! - [`ratio`]: for one estimator, the exact rays its stage casts are recorded once (each
-//!   estimator's `row_with` takes the query as a closure, and the rays do not depend on the
-//!   answers); then the whole stage ([`formfactor::compute`]) and two raw loops over the
+//!   estimator's `row_with` takes its queries through a [`visibility::Tracer`], here a
+//!   recorder, and the rays do not depend on the answers); then the whole stage ([`formfactor::compute`]) and two raw loops over the
 //!   recorded rays, one query per ray (`rtcOccluded1`, or `rtcIntersect1` for the
 //!   hemisphere's closest hits) and 16-ray packets of consecutive rays (`rtcOccluded16`,
 //!   `rtcIntersect16`), run alternately on the same rayon pool. The ratio printed is the
@@ -23,7 +23,9 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::formfactor::{self, AreaMc, Context, Hemisphere, Nodes, Pattern, Row, SemiAnalytic};
+use crate::formfactor::{
+    self, AreaMc, Context, Hemisphere, Nodes, Pattern, Row, Scratch, SemiAnalytic,
+};
 use crate::matrix::FormFactors;
 use crate::mesh::{PatchSet, Resolution};
 use crate::output;
@@ -109,12 +111,12 @@ fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64
                 (0..n)
                     .into_par_iter()
                     .map_init(
-                        || Recorder::new(keep),
-                        |rec, i| {
+                        || (Recorder::new(keep), Scratch::default()),
+                        |(rec, scratch), i| {
                             // One reused buffer per worker, copied out at its exact size.
                             rec.rays.borrow_mut().clear();
                             let mut row = Row::default();
-                            est.row_with(ctx, i, &mut row, rec);
+                            est.row_with(ctx, i, &mut row, rec, scratch);
                             count.fetch_add(row.rays, Ordering::Relaxed);
                             rec.rays.borrow().clone()
                         },
@@ -137,8 +139,8 @@ fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64
                 (0..n)
                     .into_par_iter()
                     .map_init(
-                        || Recorder::new(keep),
-                        |rec, i| {
+                        || (Recorder::new(keep), Scratch::default()),
+                        |(rec, scratch), i| {
                             rec.segments.borrow_mut().clear();
                             let mut row = Row::default();
                             match *choice {
@@ -155,12 +157,12 @@ fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64
                                         strata,
                                         replicates,
                                     }
-                                    .row_with(ctx, i, &mut row, rec)
+                                    .row_with(ctx, i, &mut row, rec, scratch)
                                 }
                                 EstimatorChoice::SemiAnalytic { .. } => semi
                                     .as_ref()
                                     .expect("built above")
-                                    .row_with(ctx, i, &mut row, rec),
+                                    .row_with(ctx, i, &mut row, rec, scratch),
                                 // Measured by the closest-hit branch above, or not ray-driven per
                                 // pair (the hemicube casts one ray per cell): nothing to record.
                                 EstimatorChoice::Hemisphere { .. }

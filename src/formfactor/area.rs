@@ -38,7 +38,7 @@
 
 use glam::{DVec3, Vec3};
 
-use super::{Context, Entry, Estimator, Row};
+use super::{Context, Entry, Estimator, Row, Scratch as Buffers};
 use std::f64::consts::FRAC_1_PI;
 
 use crate::mesh::PatchSampler;
@@ -132,8 +132,8 @@ impl Estimator for AreaMc {
         true
     }
 
-    fn row(&self, ctx: &Context, a: usize, row: &mut Row) {
-        self.row_with(ctx, a, row, ctx.vis);
+    fn row(&self, ctx: &Context, a: usize, row: &mut Row, scratch: &mut Buffers) {
+        self.row_with(ctx, a, row, ctx.vis, scratch);
     }
 }
 
@@ -141,18 +141,23 @@ impl AreaMc {
     /// Row `a` (pairs `b > a`) with `tracer` answering visibility, one batch of segment
     /// rays per pair (all its replicates); the rays asked for do not depend on the
     /// answers, so a recorder sees the exact ray set.
-    pub fn row_with(&self, ctx: &Context, a: usize, row: &mut Row, tracer: &dyn Tracer) {
+    pub fn row_with(
+        &self,
+        ctx: &Context,
+        a: usize,
+        row: &mut Row,
+        tracer: &dyn Tracer,
+        scratch: &mut Buffers,
+    ) {
         let p = ctx.patches;
         let (pa, ka) = p.corner_points(a);
         let on_a = PatchSampler::of_corners(pa, ka);
         let m = self.pairs_per_replicate();
-        SCRATCH.with(|s| {
-            let s = &mut s.borrow_mut();
-            crate::simd::with_widest(
-                #[inline(always)]
-                || self.pairs_of(ctx, a, (&pa[..ka], &on_a), m, row, tracer, s),
-            )
-        });
+        let s = &mut scratch.area;
+        crate::simd::with_widest(
+            #[inline(always)]
+            || self.pairs_of(ctx, a, (&pa[..ka], &on_a), m, row, tracer, s),
+        )
     }
 
     /// The pairs `(a, b > a)` of row a, given a's corners and sampler: culling, then
@@ -196,13 +201,14 @@ impl AreaMc {
         b: usize,
         rays: &mut u64,
         tracer: &dyn Tracer,
+        scratch: &mut Buffers,
     ) -> Option<Entry> {
         if behind(ctx, a, b) || behind(ctx, b, a) {
             return None;
         }
         let ons = (&ctx.patches.sampler(a), &ctx.patches.sampler(b));
         let m = self.pairs_per_replicate();
-        SCRATCH.with(|s| self.pair_in(ctx, a, b, ons, m, rays, tracer, &mut s.borrow_mut()))
+        self.pair_in(ctx, a, b, ons, m, rays, tracer, &mut scratch.area)
     }
 
     /// [`AreaMc::pair_with`] after the culling test, with the samplers of patches a and b
@@ -417,10 +423,10 @@ fn segments(
     }
 }
 
-/// Per-thread buffers of [`AreaMc::pair_with`], kept between pairs: one entry per sample
-/// pair of all replicates, as structure of arrays.
+/// Buffers of [`AreaMc::pair_with`], kept between pairs (in the driver's
+/// [`super::Scratch`]): one entry per sample pair of all replicates, as structure of arrays.
 #[derive(Default)]
-struct Scratch {
+pub(crate) struct Scratch {
     /// Cells of the stratified pattern ([`AreaMc::cells`]), one replicate's worth.
     cells: [Vec<f32>; 4],
     /// Unit-square coordinates `(x_u, x_v, y_u, y_v)`.
@@ -458,10 +464,6 @@ impl Scratch {
         self.g.resize(len, 0.0);
         self.ok.resize(len, false);
     }
-}
-
-thread_local! {
-    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::default();
 }
 
 /// The unoccluded point-to-point kernel `cos θ_x cos θ_y / (π r²)`, or `None` when the

@@ -28,7 +28,7 @@
 
 use glam::Vec3;
 
-use super::{Context, Entry, Estimator, Row};
+use super::{Context, Entry, Estimator, Row, Scratch as Buffers};
 use crate::sampling::{below, hashed_permutation, jitter4, SplitMix};
 use crate::visibility::{Rays, Tracer, NO_HIT};
 
@@ -106,8 +106,8 @@ impl Estimator for Hemisphere {
         n.min(st * st * self.replicates.max(2))
     }
 
-    fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
-        self.row_with(ctx, i, row, ctx.vis);
+    fn row(&self, ctx: &Context, i: usize, row: &mut Row, scratch: &mut Buffers) {
+        self.row_with(ctx, i, row, ctx.vis, scratch);
     }
 }
 
@@ -185,9 +185,10 @@ fn cells_of(perm: &[u32], st: usize, cells: &[Vec<f32>; 2], out: [&mut [f32]; 2]
     }
 }
 
-/// Per-thread buffers of [`Hemisphere::row_with`], kept between rows.
+/// Buffers of [`Hemisphere::row_with`], kept between rows (in the driver's
+/// [`super::Scratch`]).
 #[derive(Default)]
-struct Scratch {
+pub(crate) struct Scratch {
     /// Cells of the `s x s` grid, `(column, row)` as floats, for `cells_of` strata.
     cells: [Vec<f32>; 2],
     cells_of: usize,
@@ -217,24 +218,25 @@ struct Scratch {
     hit: Vec<u32>,
 }
 
-thread_local! {
-    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::default();
-}
-
 impl Hemisphere {
     /// Row `i` with `tracer` answering the closest-hit query ([`Tracer::first_front_hits`])
     /// for batches of rays (origins already offset off patch i, see
     /// [`crate::visibility::Visibility::first_hit_origin`]; [`NO_HIT`] for a miss or a back
     /// side met first), one batch per chunk of a replicate; the rays asked for do not
     /// depend on the answers, so a recorder sees the exact ray set.
-    pub fn row_with(&self, ctx: &Context, i: usize, row: &mut Row, tracer: &dyn Tracer) {
-        SCRATCH.with(|s| {
-            let s = &mut s.borrow_mut();
-            crate::simd::with_widest(
-                #[inline(always)]
-                || self.row_in(ctx, i, row, tracer, s),
-            )
-        });
+    pub fn row_with(
+        &self,
+        ctx: &Context,
+        i: usize,
+        row: &mut Row,
+        tracer: &dyn Tracer,
+        scratch: &mut Buffers,
+    ) {
+        let s = &mut scratch.hemisphere;
+        crate::simd::with_widest(
+            #[inline(always)]
+            || self.row_in(ctx, i, row, tracer, s),
+        )
     }
 
     #[inline(always)]

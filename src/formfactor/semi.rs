@@ -49,7 +49,7 @@ use glam::DVec3;
 
 use super::area::kernel;
 use super::exact::{self, Emitter, Piece, Receiver};
-use super::{Context, Entry, Estimator, Row};
+use super::{Context, Entry, Estimator, Row, Scratch as Buffers};
 use crate::mesh::PatchSet;
 use crate::sampling::{jittered, Pcg32};
 use crate::visibility::{Rays, Segments, Tracer, SEGMENT_TFAR};
@@ -280,14 +280,15 @@ impl Estimator for SemiAnalytic {
         true
     }
 
-    fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
-        self.row_with(ctx, i, row, ctx.vis);
+    fn row(&self, ctx: &Context, i: usize, row: &mut Row, scratch: &mut Buffers) {
+        self.row_with(ctx, i, row, ctx.vis, scratch);
     }
 }
 
-/// Scratch buffers of the sampled pairs, reused within a row.
+/// Buffers of the sampled pairs, reused between pairs and rows (in the driver's
+/// [`super::Scratch`]).
 #[derive(Default)]
-struct Scratch {
+pub(crate) struct Scratch {
     strata: Vec<(f64, f64)>,
     ys: Vec<(f64, f64)>,
     /// One node's segment rays, as structure of arrays.
@@ -303,7 +304,14 @@ impl SemiAnalytic {
     /// visibility for batches of segment rays
     /// ([`crate::visibility::Visibility::segment_ray`], one batch per node); the rays
     /// asked for do not depend on the answers, so a recorder sees the exact ray set.
-    pub fn row_with(&self, ctx: &Context, i: usize, row: &mut Row, tracer: &dyn Tracer) {
+    pub fn row_with(
+        &self,
+        ctx: &Context,
+        i: usize,
+        row: &mut Row,
+        tracer: &dyn Tracer,
+        buffers: &mut Buffers,
+    ) {
         let p = ctx.patches;
         let prep = self.prepared(p);
         let tol = p.plane_tol();
@@ -314,7 +322,7 @@ impl SemiAnalytic {
             .copied()
             .filter(|&k| k as usize != i && plane_range(p, i, k as usize).1 > tol)
             .collect();
-        let mut scratch = Scratch::default();
+        let scratch = &mut buffers.semi;
         // Patch i's Gauss nodes, mapped once for all the receivers it emits towards.
         let mut own: Option<Emitter> = None;
         let area_i = p.area[i];
@@ -333,7 +341,7 @@ impl SemiAnalytic {
                 let got = self.exact_pair(p, e, r, if e == i { Some(&mut own) } else { None });
                 (got.value, got.err)
             } else {
-                self.sampled_pair(ctx, (i, j), (e, r), free, row, tracer, &mut scratch)
+                self.sampled_pair(ctx, (i, j), (e, r), free, row, tracer, scratch)
             };
             if value > 0.0 {
                 row.entries.push(Entry {
