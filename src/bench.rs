@@ -4,8 +4,8 @@
 //! compares numbers taken in the same run (interleaved, median of `repeats`).
 //!
 //! - [`ratio`]: for one estimator, the exact rays its stage casts are recorded once (each
-//!   estimator's `row_with` takes the query as a closure, and the rays do not depend on the
-//!   answers); then the whole stage ([`formfactor::compute`]) and two raw loops over the
+//!   estimator's `row_with` takes its queries through a [`visibility::Tracer`], here a
+//!   recorder, and the rays do not depend on the answers); then the whole stage ([`formfactor::compute`]) and two raw loops over the
 //!   recorded rays, one query per ray (`rtcOccluded1`, or `rtcIntersect1` for the
 //!   hemisphere's closest hits) and 16-ray packets of consecutive rays (`rtcOccluded16`,
 //!   `rtcIntersect16`), run alternately on the same rayon pool. The ratio printed is the
@@ -23,14 +23,16 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::formfactor::{self, AreaMc, Context, Hemisphere, Nodes, Pattern, Row, SemiAnalytic};
+use crate::formfactor::{
+    self, AreaMc, Context, Hemisphere, Nodes, Pattern, Row, Scratch, SemiAnalytic,
+};
 use crate::matrix::FormFactors;
 use crate::mesh::{PatchSet, Resolution};
 use crate::output;
 use crate::pipeline::{self, EstimatorChoice};
 use crate::scene::Scene;
 use crate::solve::{Method, Options};
-use crate::visibility::{self, Segments, Visibility};
+use crate::visibility::{self, Rays, Segments, Tracer, Visibility};
 
 /// The rays a form-factor stage casts, recorded.
 pub enum Recorded {
@@ -55,6 +57,42 @@ impl Recorded {
     }
 }
 
+/// A [`Tracer`] that answers every query with a stub (segments free, rays missing) and,
+/// when `keep`, records the rays asked for, in order.
+struct Recorder {
+    keep: bool,
+    segments: std::cell::RefCell<Vec<(Vec3, Vec3, f32)>>,
+    rays: std::cell::RefCell<Vec<(Vec3, Vec3)>>,
+}
+
+impl Recorder {
+    fn new(keep: bool) -> Recorder {
+        Recorder {
+            keep,
+            segments: Default::default(),
+            rays: Default::default(),
+        }
+    }
+}
+
+impl Tracer for Recorder {
+    fn segments_visible(&self, segs: &Segments, out: &mut [bool]) {
+        if self.keep {
+            let mut v = self.segments.borrow_mut();
+            v.extend((0..segs.len()).map(|k| segs.ray(k)));
+        }
+        out.fill(true);
+    }
+
+    fn first_front_hits(&self, rays: &Rays, out: &mut [u32]) {
+        if self.keep {
+            let mut v = self.rays.borrow_mut();
+            v.extend((0..rays.len()).map(|k| rays.ray(k)));
+        }
+        out.fill(visibility::NO_HIT);
+    }
+}
+
 /// Records the rays the stage of `choice` casts, in row order.
 pub fn record(ctx: &Context, choice: &EstimatorChoice) -> Recorded {
     replay(ctx, choice, true).0
@@ -72,19 +110,17 @@ fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64
             Recorded::Rays(
                 (0..n)
                     .into_par_iter()
-                    .map_init(Vec::new, |rays, i| {
-                        // One reused buffer per worker, copied out at its exact size.
-                        rays.clear();
-                        let mut row = Row::default();
-                        est.row_with(ctx, i, &mut row, &mut |batch, out| {
-                            if keep {
-                                rays.extend((0..batch.len()).map(|k| batch.ray(k)));
-                            }
-                            out.fill(visibility::NO_HIT);
-                        });
-                        count.fetch_add(row.rays, Ordering::Relaxed);
-                        rays.clone()
-                    })
+                    .map_init(
+                        || (Recorder::new(keep), Scratch::default()),
+                        |(rec, scratch), i| {
+                            // One reused buffer per worker, copied out at its exact size.
+                            rec.rays.borrow_mut().clear();
+                            let mut row = Row::default();
+                            est.row_with(ctx, i, &mut row, rec, scratch);
+                            count.fetch_add(row.rays, Ordering::Relaxed);
+                            rec.rays.borrow().clone()
+                        },
+                    )
                     .collect::<Vec<_>>()
                     .concat(),
             )
@@ -102,51 +138,40 @@ fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64
             Recorded::Segments(
                 (0..n)
                     .into_par_iter()
-                    .map_init(Vec::new, |rays, i| {
-                        rays.clear();
-                        let mut row = Row::default();
-                        match *choice {
-                            EstimatorChoice::AreaStratified { strata, replicates }
-                            | EstimatorChoice::AreaUniform { strata, replicates }
-                            | EstimatorChoice::AreaSobol { strata, replicates } => {
-                                let pattern = match choice {
-                                    EstimatorChoice::AreaUniform { .. } => Pattern::Uniform,
-                                    EstimatorChoice::AreaSobol { .. } => Pattern::Sobol,
-                                    _ => Pattern::Stratified,
-                                };
-                                // The area estimators hand over structure of arrays.
-                                let mut rec = |segs: &Segments, out: &mut [bool]| {
-                                    if keep {
-                                        rays.extend((0..segs.len()).map(|k| segs.ray(k)));
+                    .map_init(
+                        || (Recorder::new(keep), Scratch::default()),
+                        |(rec, scratch), i| {
+                            rec.segments.borrow_mut().clear();
+                            let mut row = Row::default();
+                            match *choice {
+                                EstimatorChoice::AreaStratified { strata, replicates }
+                                | EstimatorChoice::AreaUniform { strata, replicates }
+                                | EstimatorChoice::AreaSobol { strata, replicates } => {
+                                    let pattern = match choice {
+                                        EstimatorChoice::AreaUniform { .. } => Pattern::Uniform,
+                                        EstimatorChoice::AreaSobol { .. } => Pattern::Sobol,
+                                        _ => Pattern::Stratified,
+                                    };
+                                    AreaMc {
+                                        pattern,
+                                        strata,
+                                        replicates,
                                     }
-                                    out.iter_mut().for_each(|o| *o = true);
-                                };
-                                AreaMc {
-                                    pattern,
-                                    strata,
-                                    replicates,
+                                    .row_with(ctx, i, &mut row, rec, scratch)
                                 }
-                                .row_with(ctx, i, &mut row, &mut rec)
-                            }
-                            EstimatorChoice::SemiAnalytic { .. } => {
-                                let mut rec = |segs: &[(Vec3, Vec3, f32)], out: &mut [bool]| {
-                                    if keep {
-                                        rays.extend_from_slice(segs);
-                                    }
-                                    out.iter_mut().for_each(|o| *o = true);
-                                };
-                                semi.as_ref()
+                                EstimatorChoice::SemiAnalytic { .. } => semi
+                                    .as_ref()
                                     .expect("built above")
-                                    .row_with(ctx, i, &mut row, &mut rec)
+                                    .row_with(ctx, i, &mut row, rec, scratch),
+                                // Measured by the closest-hit branch above, or not ray-driven per
+                                // pair (the hemicube casts one ray per cell): nothing to record.
+                                EstimatorChoice::Hemisphere { .. }
+                                | EstimatorChoice::Hemicube { .. } => {}
                             }
-                            // Measured by the closest-hit branch above, or not ray-driven per
-                            // pair (the hemicube casts one ray per cell): nothing to record.
-                            EstimatorChoice::Hemisphere { .. }
-                            | EstimatorChoice::Hemicube { .. } => {}
-                        }
-                        count.fetch_add(row.rays, Ordering::Relaxed);
-                        rays.clone()
-                    })
+                            count.fetch_add(row.rays, Ordering::Relaxed);
+                            rec.segments.borrow().clone()
+                        },
+                    )
                     .collect::<Vec<_>>()
                     .concat(),
             )

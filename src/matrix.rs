@@ -9,7 +9,7 @@
 //! is lost (Cohen and Wallace 1993, §5.3), so the pipeline scales those rows to sum to 1.
 
 use rayon::prelude::*;
-use sprs::CsMat;
+use sprs::{CsMatI, TriMatI};
 
 /// One estimated entry of a row: `F_ij` and its standard error.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -55,7 +55,7 @@ pub struct RowRepair {
 /// returns the repaired copy, or `None` when no row needs it. After the repair
 /// `max_i rho_i sum_j |F_ij| <= max rho < 1`, which bounds the spectral radius of
 /// `diag(rho) F` below 1: every solver converges and `B` stays bounded.
-pub fn repair_row_sums(f: &CsMat<f64>, rho: &[[f64; 3]]) -> Option<(CsMat<f64>, RowRepair)> {
+pub fn repair_row_sums(f: &Csr, rho: &[[f64; 3]]) -> Option<(Csr, RowRepair)> {
     let mut rep = RowRepair::default();
     let mut scale = vec![1.0; f.rows()];
     for (i, row) in f.outer_iterator().enumerate() {
@@ -108,11 +108,19 @@ fn grow<T: Clone + Default>(v: &mut Vec<T>, len: usize) {
     }
 }
 
+/// The CSR storage of `F`: `f64` values, `u32` column indices (a scene has at most
+/// `u32::MAX / 4` patches), `usize` row pointers. With the `f64` standard errors of
+/// [`FormFactors::se`], 20 bytes per stored factor.
+pub type Csr = CsMatI<f64, u32, usize>;
+
+/// Triplets that convert to a [`Csr`] (`.to_csr()`).
+pub type Triplets = TriMatI<f64, u32>;
+
 /// A form-factor matrix and how it was made.
 #[derive(Clone, Debug)]
 pub struct FormFactors {
     /// `F[i, j]`: fraction of the energy leaving patch i that arrives at patch j (CSR).
-    pub f: CsMat<f64>,
+    pub f: Csr,
     /// Standard error of each stored entry, aligned with `f.data()`.
     pub se: Vec<f64>,
     /// Patch areas.
@@ -138,7 +146,7 @@ pub const SIGNIFICANT: f64 = 1e-3;
 #[derive(Debug, Default)]
 pub struct CsrBuilder {
     indptr: Vec<usize>,
-    indices: Vec<usize>,
+    indices: Vec<u32>,
     data: Vec<f64>,
     se: Vec<f64>,
 }
@@ -201,7 +209,7 @@ impl CsrBuilder {
     pub fn push_row(&mut self, row: &mut Vec<Entry>) {
         sort_row(row);
         for e in row.iter() {
-            self.indices.push(e.j as usize);
+            self.indices.push(e.j);
             self.data.push(e.f);
             self.se.push(e.se);
         }
@@ -238,7 +246,7 @@ impl CsrBuilder {
         }
         parts.into_par_iter().for_each(|(r, ix, dx, sx)| {
             for (k, e) in r.iter().enumerate() {
-                ix[k].write(e.j as usize);
+                ix[k].write(e.j);
                 dx[k].write(e.f);
                 sx[k].write(e.se);
             }
@@ -305,14 +313,14 @@ impl CsrBuilder {
                     let j = e.j as usize;
                     let s = area[i] / area[j];
                     let p = &mut cursor[j - j0];
-                    (ix[*p], dx[*p], sx[*p]) = (i, e.f * s, e.se * s);
+                    (ix[*p], dx[*p], sx[*p]) = (i as u32, e.f * s, e.se * s);
                     *p += 1;
                 }
             }
             // Then each row's own upper part.
             for (j, p) in (j0..j1).zip(cursor) {
                 for (k, e) in rows[j].iter().enumerate() {
-                    (ix[p + k], dx[p + k], sx[p + k]) = (e.j as usize, e.f, e.se);
+                    (ix[p + k], dx[p + k], sx[p + k]) = (e.j, e.f, e.se);
                 }
             }
         });
@@ -334,7 +342,7 @@ impl CsrBuilder {
         seed: u64,
     ) -> FormFactors {
         let n = self.indptr.len() - 1;
-        let f = CsMat::new((n, n), self.indptr, self.indices, self.data);
+        let f = Csr::new((n, n), self.indptr, self.indices, self.data);
         FormFactors {
             f,
             se: self.se,
@@ -390,8 +398,7 @@ impl FormFactors {
     }
 
     /// Bytes held per stored factor: column index, value and standard error.
-    pub const BYTES_PER_ENTRY: usize =
-        std::mem::size_of::<usize>() + 2 * std::mem::size_of::<f64>();
+    pub const BYTES_PER_ENTRY: usize = std::mem::size_of::<u32>() + 2 * std::mem::size_of::<f64>();
     /// Number of patches.
     pub fn len(&self) -> usize {
         self.f.rows()
@@ -415,7 +422,10 @@ impl FormFactors {
     /// The stored entries of row `i`: `(j, F_ij, standard error)`.
     pub fn row(&self, i: usize) -> impl Iterator<Item = (usize, f64, f64)> + '_ {
         let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));
-        (lo..hi).map(move |k| (self.f.indices()[k], self.f.data()[k], self.se[k]))
+        (lo..hi).map(move |k| {
+            let j = self.f.indices()[k] as usize;
+            (j, self.f.data()[k], self.se[k])
+        })
     }
 
     /// Sum of row `i`.
@@ -512,6 +522,7 @@ impl FormFactors {
         };
         let (mut pairs, mut beyond) = (0usize, 0usize);
         for ((&j, &f), &se_ij) in cols.iter().zip(vals).zip(ses) {
+            let j = j as usize;
             if !f.is_finite() || !(0.0..=1.0).contains(&f) {
                 d.out_of_range += 1;
             }
@@ -520,13 +531,13 @@ impl FormFactors {
                 let (lo, hi) = (ptr.index(j), ptr.index(j + 1));
                 let mut c = cursor[j];
                 if c == usize::MAX {
-                    c = lo + idx[lo..hi].partition_point(|&x| x < i);
+                    c = lo + idx[lo..hi].partition_point(|&x| (x as usize) < i);
                 }
-                while c < hi && idx[c] < i {
+                while c < hi && (idx[c] as usize) < i {
                     c += 1;
                 }
                 cursor[j] = c;
-                (c < hi && idx[c] == i).then_some(c)
+                (c < hi && idx[c] as usize == i).then_some(c)
             };
             if let Some(b) = self.reciprocity_of((i, j), (f, se_ij), back, &mut d) {
                 pairs += 1;
@@ -570,7 +581,7 @@ impl FormFactors {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use sprs::TriMat;
+    type TriMat = Triplets;
 
     #[test]
     fn repair_scales_only_rows_past_the_bound() {
@@ -580,7 +591,7 @@ mod tests {
         t.add_triplet(1, 0, 0.6);
         t.add_triplet(1, 2, 0.5); // 1.1 * 0.5 < 1: kept
         t.add_triplet(2, 0, 0.3);
-        let f: CsMat<f64> = t.to_csr();
+        let f: Csr = t.to_csr();
         let rho = [[0.9, 0.1, 0.1], [0.5; 3], [0.5; 3]];
         let (g, rep) = repair_row_sums(&f, &rho).unwrap();
         assert_eq!(rep.rows, vec![0]);
@@ -703,7 +714,7 @@ mod tests {
         rows
     }
 
-    fn arrays(b: CsrBuilder) -> (Vec<usize>, Vec<usize>, Vec<f64>, Vec<f64>) {
+    fn arrays(b: CsrBuilder) -> (Vec<usize>, Vec<u32>, Vec<f64>, Vec<f64>) {
         (b.indptr, b.indices, b.data, b.se)
     }
 

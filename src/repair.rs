@@ -231,7 +231,7 @@ fn reciprocity(ff: &mut FormFactors, sigma: &[f64], update_se: bool) {
     for i in 0..n {
         let (lo, hi) = (ff.f.indptr().index(i), ff.f.indptr().index(i + 1));
         for k in lo..hi {
-            let j = ff.f.indices()[k];
+            let j = ff.f.indices()[k] as usize;
             if j <= i {
                 continue;
             }

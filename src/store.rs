@@ -294,7 +294,7 @@ pub struct MtxRows {
     /// Row pointers (`n + 1`).
     pub indptr: Vec<usize>,
     /// Column of each entry (0-based).
-    pub indices: Vec<usize>,
+    pub indices: Vec<u32>,
     /// Value of each entry.
     pub data: Vec<f64>,
     /// SHA-256 of the bytes read, lower-case hex.
@@ -335,7 +335,7 @@ pub fn parse_mtx(
     bytes: u64,
     n: usize,
     values: Values,
-    pattern: Option<(&[usize], &[usize])>,
+    pattern: Option<(&[usize], &[u32])>,
 ) -> Result<MtxRows> {
     let mut r = std::io::BufReader::new(Hashing {
         inner: input,
@@ -504,7 +504,7 @@ pub fn parse_mtx(
         }
         prev = Some((i, j));
         if let Some((ptr, ind)) = pattern {
-            if ind.get(k) != Some(&j) || !(ptr[i] <= k && k < ptr[i + 1]) {
+            if ind.get(k) != Some(&(j as u32)) || !(ptr[i] <= k && k < ptr[i + 1]) {
                 return Err(Error::Mismatch {
                     path: path.to_path_buf(),
                     msg: format!(
@@ -518,7 +518,7 @@ pub fn parse_mtx(
         while m.indptr.len() <= i {
             m.indptr.push(k);
         }
-        m.indices.push(j);
+        m.indices.push(j as u32);
         m.data.push(value);
     }
     if m.data.len() != nnz {
@@ -542,7 +542,7 @@ fn read_mtx(
     path: &Path,
     n: usize,
     values: Values,
-    pattern: Option<(&[usize], &[usize])>,
+    pattern: Option<(&[usize], &[u32])>,
 ) -> Result<MtxRows> {
     let (file, bytes) = open_regular(path)?;
     parse_mtx(path, file.take(bytes), bytes, n, values, pattern)
@@ -639,12 +639,13 @@ pub fn read(dir: &Path, patches: &PatchSet) -> Result<FormFactors> {
     )?;
     check_hash(dir, &prov, "stderr.mtx", &se.sha256)?;
     let f_path = dir.join("F.mtx");
-    let f =
-        sprs::CsMat::try_new((n, n), f.indptr, f.indices, f.data).map_err(|e| Error::Parse {
+    let f = crate::matrix::Csr::try_new((n, n), f.indptr, f.indices, f.data).map_err(|e| {
+        Error::Parse {
             path: f_path,
             line: None,
             msg: format!("not a valid sparse matrix: {}", e.3),
-        })?;
+        }
+    })?;
     Ok(FormFactors {
         se: se.data,
         f,

@@ -2,6 +2,7 @@
 
 mod bake;
 mod formfactors;
+mod fuzz;
 mod geometry;
 mod hierarchy;
 mod invalid;

@@ -38,12 +38,12 @@
 
 use glam::{DVec3, Vec3};
 
-use super::{Context, Entry, Estimator, Row};
+use super::{Context, Entry, Estimator, Row, Scratch as Buffers};
 use std::f64::consts::FRAC_1_PI;
 
 use crate::mesh::PatchSampler;
 use crate::sampling::{jitter4, Wy};
-use crate::visibility::{Offsets, Rays, Segments, SEGMENT_TFAR};
+use crate::visibility::{Offsets, Rays, Segments, Tracer, SEGMENT_TFAR};
 
 /// How points are placed on each patch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -132,37 +132,32 @@ impl Estimator for AreaMc {
         true
     }
 
-    fn row(&self, ctx: &Context, a: usize, row: &mut Row) {
-        let vis = ctx.vis;
-        self.row_with(ctx, a, row, &mut |segs, out| {
-            vis.segments_visible_soa(segs, out)
-        });
+    fn row(&self, ctx: &Context, a: usize, row: &mut Row, scratch: &mut Buffers) {
+        self.row_with(ctx, a, row, ctx.vis, scratch);
     }
 }
 
 impl AreaMc {
-    /// Row `a` (pairs `b > a`) with `visible(segments, out)` answering visibility for a
-    /// batch of segment rays ([`crate::visibility::Visibility::segment_ray`], one batch per
-    /// pair, all its replicates); the rays asked for do not depend on the answers, so a
-    /// recorder sees the exact ray set.
+    /// Row `a` (pairs `b > a`) with `tracer` answering visibility, one batch of segment
+    /// rays per pair (all its replicates); the rays asked for do not depend on the
+    /// answers, so a recorder sees the exact ray set.
     pub fn row_with(
         &self,
         ctx: &Context,
         a: usize,
         row: &mut Row,
-        visible: &mut dyn FnMut(&Segments, &mut [bool]),
+        tracer: &dyn Tracer,
+        scratch: &mut Buffers,
     ) {
         let p = ctx.patches;
         let (pa, ka) = p.corner_points(a);
         let on_a = PatchSampler::of_corners(pa, ka);
         let m = self.pairs_per_replicate();
-        SCRATCH.with(|s| {
-            let s = &mut s.borrow_mut();
-            crate::simd::with_widest(
-                #[inline(always)]
-                || self.pairs_of(ctx, a, (&pa[..ka], &on_a), m, row, visible, s),
-            )
-        });
+        let s = &mut scratch.area;
+        crate::simd::with_widest(
+            #[inline(always)]
+            || self.pairs_of(ctx, a, (&pa[..ka], &on_a), m, row, tracer, s),
+        )
     }
 
     /// The pairs `(a, b > a)` of row a, given a's corners and sampler: culling, then
@@ -176,7 +171,7 @@ impl AreaMc {
         (pa, on_a): (&[DVec3], &PatchSampler),
         m: usize,
         row: &mut Row,
-        visible: &mut dyn FnMut(&Segments, &mut [bool]),
+        tracer: &dyn Tracer,
         s: &mut Scratch,
     ) {
         let p = ctx.patches;
@@ -189,7 +184,7 @@ impl AreaMc {
                 }
                 let on_b = PatchSampler::of_corners(pb, kb);
                 let (ons, rays) = ((on_a, &on_b), &mut row.rays);
-                if let Some(e) = self.pair_in(ctx, a, b, ons, m, rays, visible, s) {
+                if let Some(e) = self.pair_in(ctx, a, b, ons, m, rays, tracer, s) {
                     row.entries.push(e);
                 }
             }
@@ -198,22 +193,22 @@ impl AreaMc {
 
     /// The entry `F_ab` of the unordered pair (a, b) (`F_ba` follows by reciprocity), or
     /// `None` when the pair is culled or no sample sees anything; `rays` counts the rays.
-    /// `visible(segments, out)` answers visibility for the pair's batch of segment rays
-    /// ([`crate::visibility::Visibility::segment_ray`]).
+    /// `tracer` answers visibility for the pair's batch of segment rays.
     pub fn pair_with(
         &self,
         ctx: &Context,
         a: usize,
         b: usize,
         rays: &mut u64,
-        visible: &mut dyn FnMut(&Segments, &mut [bool]),
+        tracer: &dyn Tracer,
+        scratch: &mut Buffers,
     ) -> Option<Entry> {
         if behind(ctx, a, b) || behind(ctx, b, a) {
             return None;
         }
         let ons = (&ctx.patches.sampler(a), &ctx.patches.sampler(b));
         let m = self.pairs_per_replicate();
-        SCRATCH.with(|s| self.pair_in(ctx, a, b, ons, m, rays, visible, &mut s.borrow_mut()))
+        self.pair_in(ctx, a, b, ons, m, rays, tracer, &mut scratch.area)
     }
 
     /// [`AreaMc::pair_with`] after the culling test, with the samplers of patches a and b
@@ -228,7 +223,7 @@ impl AreaMc {
         (on_a, on_b): (&PatchSampler, &PatchSampler),
         m: usize,
         rays: &mut u64,
-        visible: &mut dyn FnMut(&Segments, &mut [bool]),
+        tracer: &dyn Tracer,
         s: &mut Scratch,
     ) -> Option<Entry> {
         let p = ctx.patches;
@@ -280,7 +275,7 @@ impl AreaMc {
             },
             tfar: SEGMENT_TFAR,
         };
-        visible(&segs, &mut s.seen[..n]);
+        tracer.segments_visible(&segs, &mut s.seen[..n]);
         let (mut avg, mut lo) = (0.0, 0);
         s.means.clear();
         for &hi in &s.ends {
@@ -428,10 +423,10 @@ fn segments(
     }
 }
 
-/// Per-thread buffers of [`AreaMc::pair_with`], kept between pairs: one entry per sample
-/// pair of all replicates, as structure of arrays.
+/// Buffers of [`AreaMc::pair_with`], kept between pairs (in the driver's
+/// [`super::Scratch`]): one entry per sample pair of all replicates, as structure of arrays.
 #[derive(Default)]
-struct Scratch {
+pub(crate) struct Scratch {
     /// Cells of the stratified pattern ([`AreaMc::cells`]), one replicate's worth.
     cells: [Vec<f32>; 4],
     /// Unit-square coordinates `(x_u, x_v, y_u, y_v)`.
@@ -469,10 +464,6 @@ impl Scratch {
         self.g.resize(len, 0.0);
         self.ok.resize(len, false);
     }
-}
-
-thread_local! {
-    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::default();
 }
 
 /// The unoccluded point-to-point kernel `cos θ_x cos θ_y / (π r²)`, or `None` when the

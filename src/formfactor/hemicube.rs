@@ -89,7 +89,7 @@ impl Estimator for Hemicube {
         format!("hemicube(res={})", self.resolution())
     }
 
-    fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
+    fn row(&self, ctx: &Context, i: usize, row: &mut Row, _: &mut super::Scratch) {
         let p = ctx.patches;
         let n_i = p.normal[i];
         let (t, b) = basis(n_i.as_vec3());

@@ -28,9 +28,9 @@
 
 use glam::Vec3;
 
-use super::{Context, Entry, Estimator, Row};
+use super::{Context, Entry, Estimator, Row, Scratch as Buffers};
 use crate::sampling::{below, hashed_permutation, jitter4, SplitMix};
-use crate::visibility::{Rays, NO_HIT};
+use crate::visibility::{Rays, Tracer, NO_HIT};
 
 /// Rays made, traced and counted together: a chunk's sampling buffers (about 24 KB) stay
 /// in a 48 KB L1 data cache beside Embree's traversal data.
@@ -106,11 +106,8 @@ impl Estimator for Hemisphere {
         n.min(st * st * self.replicates.max(2))
     }
 
-    fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
-        let vis = ctx.vis;
-        self.row_with(ctx, i, row, &mut |rays, out| {
-            vis.first_front_hits_soa(rays, out)
-        });
+    fn row(&self, ctx: &Context, i: usize, row: &mut Row, scratch: &mut Buffers) {
+        self.row_with(ctx, i, row, ctx.vis, scratch);
     }
 }
 
@@ -188,9 +185,10 @@ fn cells_of(perm: &[u32], st: usize, cells: &[Vec<f32>; 2], out: [&mut [f32]; 2]
     }
 }
 
-/// Per-thread buffers of [`Hemisphere::row_with`], kept between rows.
+/// Buffers of [`Hemisphere::row_with`], kept between rows (in the driver's
+/// [`super::Scratch`]).
 #[derive(Default)]
-struct Scratch {
+pub(crate) struct Scratch {
     /// Cells of the `s x s` grid, `(column, row)` as floats, for `cells_of` strata.
     cells: [Vec<f32>; 2],
     cells_of: usize,
@@ -220,42 +218,29 @@ struct Scratch {
     hit: Vec<u32>,
 }
 
-thread_local! {
-    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::default();
-}
-
 impl Hemisphere {
-    /// Row `i` with `first_hits(rays, out)` answering the closest-hit query for a batch of
-    /// rays (structure of arrays; origins already offset off patch i, see
-    /// [`crate::visibility::Visibility::first_hit_origin`]): `out[k]` is the patch whose
-    /// front side ray k meets first, or [`NO_HIT`] (see
-    /// [`crate::visibility::Visibility::first_front_hits_soa`]). One batch per replicate; the rays asked for do not depend on the
-    /// answers, so a recorder sees the exact ray set.
+    /// Row `i` with `tracer` answering the closest-hit query ([`Tracer::first_front_hits`])
+    /// for batches of rays (origins already offset off patch i, see
+    /// [`crate::visibility::Visibility::first_hit_origin`]; [`NO_HIT`] for a miss or a back
+    /// side met first), one batch per chunk of a replicate; the rays asked for do not
+    /// depend on the answers, so a recorder sees the exact ray set.
     pub fn row_with(
         &self,
         ctx: &Context,
         i: usize,
         row: &mut Row,
-        first_hits: &mut dyn FnMut(&Rays, &mut [u32]),
+        tracer: &dyn Tracer,
+        scratch: &mut Buffers,
     ) {
-        SCRATCH.with(|s| {
-            let s = &mut s.borrow_mut();
-            crate::simd::with_widest(
-                #[inline(always)]
-                || self.row_in(ctx, i, row, first_hits, s),
-            )
-        });
+        let s = &mut scratch.hemisphere;
+        crate::simd::with_widest(
+            #[inline(always)]
+            || self.row_in(ctx, i, row, tracer, s),
+        )
     }
 
     #[inline(always)]
-    fn row_in(
-        &self,
-        ctx: &Context,
-        i: usize,
-        row: &mut Row,
-        first_hits: &mut dyn FnMut(&Rays, &mut [u32]),
-        s: &mut Scratch,
-    ) {
+    fn row_in(&self, ctx: &Context, i: usize, row: &mut Row, tracer: &dyn Tracer, s: &mut Scratch) {
         let p = ctx.patches;
         let reps = self.replicates.max(2);
         let st = self.strata.max(1);
@@ -320,7 +305,7 @@ impl Hemisphere {
                     org: [&o[0][..len], &o[1][..len], &o[2][..len]],
                     dir: [&d[0][..len], &d[1][..len], &d[2][..len]],
                 };
-                first_hits(&rays, &mut s.hits[..len]);
+                tracer.first_front_hits(&rays, &mut s.hits[..len]);
                 // Count front-side hits per (patch, replicate), without branches: a miss
                 // (or a back side met first) and a hit on patch i itself count in the
                 // spare slot n.

@@ -80,6 +80,15 @@ impl EstimatorKind {
     }
 }
 
+/// Buffers an estimator works in, owned by the row driver: one per worker, lent to every
+/// row it computes and kept between rows (no thread-local state in the estimators).
+#[derive(Default)]
+pub struct Scratch {
+    pub(crate) area: area::Scratch,
+    pub(crate) hemisphere: hemisphere::Scratch,
+    pub(crate) semi: semi::Scratch,
+}
+
 /// Everything an estimator may read while computing a row.
 pub struct Context<'a> {
     /// The patches.
@@ -106,8 +115,8 @@ pub trait Estimator: Sync {
         n
     }
     /// Computes row `i` (only `j > i` when [`Estimator::upper_only`]) into `row`, which
-    /// arrives cleared.
-    fn row(&self, ctx: &Context, i: usize, row: &mut Row);
+    /// arrives cleared, working in the driver's `scratch`.
+    fn row(&self, ctx: &Context, i: usize, row: &mut Row, scratch: &mut Scratch);
 }
 
 /// Rows computed in parallel per block before they are appended to the CSR arrays (and
@@ -143,18 +152,21 @@ fn rows_par(
     let rows: Vec<(Vec<Entry>, u64)> = range
         .into_par_iter()
         .with_min_len(1)
-        .map_init(Row::default, |row, i| {
-            row.entries.clear();
-            row.rays = 0;
-            est.row(ctx, i, row);
-            // Sorted here, in parallel, so that the assembly only copies.
-            sort_row(&mut row.entries);
-            let d = done.fetch_add(1, Ordering::Relaxed) + 1;
-            if d % 64 == 0 || d == n {
-                progress(d);
-            }
-            (row.entries.as_slice().to_vec(), row.rays)
-        })
+        .map_init(
+            || (Row::default(), Scratch::default()),
+            |(row, scratch), i| {
+                row.entries.clear();
+                row.rays = 0;
+                est.row(ctx, i, row, scratch);
+                // Sorted here, in parallel, so that the assembly only copies.
+                sort_row(&mut row.entries);
+                let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+                if d % 64 == 0 || d == n {
+                    progress(d);
+                }
+                (row.entries.as_slice().to_vec(), row.rays)
+            },
+        )
         .collect();
     let rays = rows.iter().map(|r| r.1).sum();
     (rows.into_iter().map(|r| r.0).collect(), rays)
@@ -256,7 +268,7 @@ mod tests {
         fn name(&self) -> String {
             "uneven".into()
         }
-        fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
+        fn row(&self, ctx: &Context, i: usize, row: &mut Row, _: &mut Scratch) {
             let k = if i < BLOCK_ROWS {
                 self.short
             } else {
@@ -300,7 +312,7 @@ mod tests {
             let rows: Vec<Vec<Entry>> = (0..n)
                 .map(|i| {
                     let mut row = Row::default();
-                    est.row(&ctx, i, &mut row);
+                    est.row(&ctx, i, &mut row, &mut Scratch::default());
                     row.entries
                 })
                 .collect();

@@ -49,10 +49,10 @@ use glam::DVec3;
 
 use super::area::kernel;
 use super::exact::{self, Emitter, Piece, Receiver};
-use super::{Context, Entry, Estimator, Row};
+use super::{Context, Entry, Estimator, Row, Scratch as Buffers};
 use crate::mesh::PatchSet;
 use crate::sampling::{jittered, Pcg32};
-use crate::visibility::SegmentRay;
+use crate::visibility::{Rays, Segments, Tracer, SEGMENT_TFAR};
 
 /// How the nodes `x` on the emitter are placed for pairs that nothing can block.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -280,28 +280,28 @@ impl Estimator for SemiAnalytic {
         true
     }
 
-    fn row(&self, ctx: &Context, i: usize, row: &mut Row) {
-        let vis = ctx.vis;
-        self.row_with(ctx, i, row, &mut |segs, out| {
-            vis.segments_visible(segs, out)
-        });
+    fn row(&self, ctx: &Context, i: usize, row: &mut Row, scratch: &mut Buffers) {
+        self.row_with(ctx, i, row, ctx.vis, scratch);
     }
 }
 
-/// Scratch buffers of the sampled pairs, reused within a row.
+/// Buffers of the sampled pairs, reused between pairs and rows (in the driver's
+/// [`super::Scratch`]).
 #[derive(Default)]
-struct Scratch {
+pub(crate) struct Scratch {
     strata: Vec<(f64, f64)>,
     ys: Vec<(f64, f64)>,
-    segs: Vec<SegmentRay>,
+    /// One node's segment rays, as structure of arrays.
+    org: [Vec<f32>; 3],
+    dir: [Vec<f32>; 3],
     gs: Vec<f64>,
     seen: Vec<bool>,
     means: Vec<f64>,
 }
 
 impl SemiAnalytic {
-    /// Row `i`, entries `j > i` ([`Estimator::upper_only`]), with `visible(segments, out)`
-    /// answering visibility for a batch of segment rays
+    /// Row `i`, entries `j > i` ([`Estimator::upper_only`]), with `tracer` answering
+    /// visibility for batches of segment rays
     /// ([`crate::visibility::Visibility::segment_ray`], one batch per node); the rays
     /// asked for do not depend on the answers, so a recorder sees the exact ray set.
     pub fn row_with(
@@ -309,7 +309,8 @@ impl SemiAnalytic {
         ctx: &Context,
         i: usize,
         row: &mut Row,
-        visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
+        tracer: &dyn Tracer,
+        buffers: &mut Buffers,
     ) {
         let p = ctx.patches;
         let prep = self.prepared(p);
@@ -321,7 +322,7 @@ impl SemiAnalytic {
             .copied()
             .filter(|&k| k as usize != i && plane_range(p, i, k as usize).1 > tol)
             .collect();
-        let mut scratch = Scratch::default();
+        let scratch = &mut buffers.semi;
         // Patch i's Gauss nodes, mapped once for all the receivers it emits towards.
         let mut own: Option<Emitter> = None;
         let area_i = p.area[i];
@@ -340,7 +341,7 @@ impl SemiAnalytic {
                 let got = self.exact_pair(p, e, r, if e == i { Some(&mut own) } else { None });
                 (got.value, got.err)
             } else {
-                self.sampled_pair(ctx, (i, j), (e, r), free, row, visible, &mut scratch)
+                self.sampled_pair(ctx, (i, j), (e, r), free, row, tracer, scratch)
             };
             if value > 0.0 {
                 row.entries.push(Entry {
@@ -409,7 +410,7 @@ impl SemiAnalytic {
         (e, r): (usize, usize),
         free: bool,
         row: &mut Row,
-        visible: &mut dyn FnMut(&[SegmentRay], &mut [bool]),
+        tracer: &dyn Tracer,
         s: &mut Scratch,
     ) -> (f64, f64) {
         let p = ctx.patches;
@@ -441,19 +442,32 @@ impl SemiAnalytic {
                     1.0
                 } else {
                     jittered(&mut rng, self.vis_rays.max(1), &mut s.ys);
-                    s.segs.clear();
+                    s.org.iter_mut().chain(&mut s.dir).for_each(Vec::clear);
                     s.gs.clear();
                     for &(u, v) in &s.ys {
                         let y = on_r.point(u, v);
                         if let Some(g) = kernel(xf, n_e, y, n_r) {
-                            s.segs.push(ctx.vis.segment_ray(xf, n_e, y, n_r));
+                            let (o, d, _) = ctx.vis.segment_ray(xf, n_e, y, n_r);
+                            for c in 0..3 {
+                                s.org[c].push(o[c]);
+                                s.dir[c].push(d[c]);
+                            }
                             s.gs.push(g);
                         }
                     }
-                    row.rays += s.segs.len() as u64;
+                    let k = s.gs.len();
+                    row.rays += k as u64;
                     s.seen.clear();
-                    s.seen.resize(s.segs.len(), false);
-                    visible(&s.segs, &mut s.seen);
+                    s.seen.resize(k, false);
+                    let (o, d) = (&s.org, &s.dir);
+                    let segs = Segments {
+                        rays: Rays {
+                            org: [&o[0], &o[1], &o[2]],
+                            dir: [&d[0], &d[1], &d[2]],
+                        },
+                        tfar: SEGMENT_TFAR,
+                    };
+                    tracer.segments_visible(&segs, &mut s.seen);
                     let (mut g_all, mut g_vis) = (0.0, 0.0);
                     for (&g, &seen) in s.gs.iter().zip(&s.seen) {
                         g_all += g;

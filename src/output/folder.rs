@@ -385,8 +385,14 @@ fn swap_in(
             Err(e) if std::fs::symlink_metadata(dir).is_err() => return Err(Error::io(dir, e)),
             Err(_) => {}
         }
-        // Something is at `dir`: replace it only if `check_folder` still allows it.
-        check_folder(dir, kind)?;
+        // Something is at `dir`: replace it only if `check_folder` still allows it (a
+        // folder another run moves away meanwhile is no reason to fail: try again).
+        if let Err(e) = check_folder(dir, kind) {
+            if std::fs::symlink_metadata(dir).is_ok() {
+                return Err(e);
+            }
+            continue;
+        }
         if moved_aside {
             let _ = std::fs::remove_dir_all(&old);
         }

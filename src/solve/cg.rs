@@ -38,8 +38,8 @@
 //! If `p^T M_s p <= 0` the symmetric form is not positive definite (rows of `F` summing above
 //! `1 / rho`): the run stops with [`Error::Singular`].
 
+use crate::matrix::{Csr, Triplets};
 use rayon::prelude::*;
-use sprs::{CsMat, TriMat};
 
 use super::{
     divergence, diverging, finish, gather, Options, Outcome, Prologue, Rows, SolveReport, Solver,
@@ -62,9 +62,9 @@ pub struct Cg;
 
 /// `S = (diag(A) F + (diag(A) F)^T) / 2` and the relative asymmetry
 /// `sum_ij |A_i F_ij - A_j F_ji| / (2 sum_ij |A_i F_ij|)`.
-pub fn symmetrise(f: &CsMat<f64>, area: &[f64]) -> (CsMat<f64>, f64) {
+pub fn symmetrise(f: &Csr, area: &[f64]) -> (Csr, f64) {
     let n = f.rows();
-    let mut t = TriMat::with_capacity((n, n), 2 * f.nnz());
+    let mut t = Triplets::with_capacity((n, n), 2 * f.nnz());
     let mut total = 0.0;
     for (i, row) in f.outer_iterator().enumerate() {
         for (j, &v) in row.iter() {
@@ -75,7 +75,7 @@ pub fn symmetrise(f: &CsMat<f64>, area: &[f64]) -> (CsMat<f64>, f64) {
         }
     }
     // Summing duplicates gives S; the asymmetry comes from S and diag(A) F together.
-    let s: CsMat<f64> = t.to_csr();
+    let s: Csr = t.to_csr();
     let mut diff = 0.0;
     for (i, row) in s.outer_iterator().enumerate() {
         for (j, &sij) in row.iter() {
@@ -185,6 +185,7 @@ impl Solver for Cg {
                         let (ind, val) = srows.row(i);
                         let mut acc = [0.0; 3];
                         for (&j, &v) in ind.iter().zip(val) {
+                            let j = j as usize;
                             for c in 0..3 {
                                 acc[c] += v * p[j][c];
                             }
@@ -328,6 +329,7 @@ mod tests {
     use super::super::testing::*;
     use super::super::*;
     use super::*;
+    use crate::matrix::Triplets as TriMat;
 
     fn tight() -> Options {
         Options {

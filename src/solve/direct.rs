@@ -94,6 +94,7 @@ fn factorise(sys: &System, rows: &Rows, c: usize, channels: Vec<usize>) -> Resul
         let (ind, val) = rows.row(i);
         let rho = sys.rho[i][c];
         for (&j, &f) in ind.iter().zip(val) {
+            let j = j as usize;
             a[(i, j)] -= rho * f;
         }
         a[(i, i)] += 1.0;
@@ -306,7 +307,7 @@ mod tests {
     #[test]
     fn refuses_too_many_patches_with_memory() {
         let n = DIRECT_MAX_PATCHES + 1;
-        let f = CsMat::<f64>::zero((n, n));
+        let f = crate::matrix::Csr::zero((n, n));
         let (rho, emit, area) = (vec![[0.5; 3]; n], vec![[1.0; 3]; n], vec![1.0; n]);
         let sys = System::new(&f, &rho, &emit, &area).unwrap();
         match Direct.solve(&sys, &Options::default()) {

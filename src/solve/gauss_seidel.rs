@@ -43,6 +43,7 @@ impl Solver for GaussSeidel {
                 // j != i with current values; `fii`: the diagonal.
                 let (mut all, mut off, mut fii) = ([0.0; 3], [0.0; 3], 0.0);
                 for (&j, &f) in ind.iter().zip(val) {
+                    let j = j as usize;
                     let (o, cur) = (old[j], b[j]);
                     for c in 0..3 {
                         all[c] += f * o[c];

@@ -53,11 +53,11 @@
 //!
 //! ## Example
 //! ```
+//! use radiosity::matrix::Triplets;
 //! use radiosity::solve::{solve, Method, Options, System};
-//! use sprs::TriMat;
 //!
 //! // Two patches facing each other, each seeing half of the other.
-//! let mut t = TriMat::new((2, 2));
+//! let mut t = Triplets::new((2, 2));
 //! t.add_triplet(0, 1, 0.5);
 //! t.add_triplet(1, 0, 0.5);
 //! let f = t.to_csr();
@@ -74,8 +74,8 @@ use std::fmt;
 use std::str::FromStr;
 use std::time::Instant;
 
+use crate::matrix::Csr;
 use rayon::prelude::*;
-use sprs::CsMat;
 
 use crate::error::{Error, Result};
 
@@ -107,7 +107,7 @@ pub const DIVERGENCE: f64 = 1e12;
 pub struct System<'a> {
     /// `F[i, j]`, stored by rows (CSR): the fraction of the energy leaving patch i that
     /// arrives at patch j.
-    pub f: &'a CsMat<f64>,
+    pub f: &'a Csr,
     /// Diffuse reflectance of each patch, per channel, in `[0, 1)`.
     pub rho: &'a [[f64; 3]],
     /// Emitted exitance of each patch, per channel.
@@ -121,7 +121,7 @@ impl<'a> System<'a> {
     /// `area` per row of `f`, every value finite, `rho` in `[0, 1)`, areas positive, and
     /// `rho_i * F_ii < 1` (a patch may not reflect onto itself all it receives).
     pub fn new(
-        f: &'a CsMat<f64>,
+        f: &'a Csr,
         rho: &'a [[f64; 3]],
         emit: &'a [[f64; 3]],
         area: &'a [f64],
@@ -421,13 +421,13 @@ pub fn residual(sys: &System, b: &[[f64; 3]]) -> f64 {
 /// Row access to a CSR matrix: `(indices, values)` of row `i`.
 pub(crate) struct Rows<'a> {
     ptr: Vec<usize>,
-    ind: &'a [usize],
+    ind: &'a [u32],
     val: &'a [f64],
 }
 
 impl<'a> Rows<'a> {
     /// Rows of `f` (CSR, checked by [`System::validate`]).
-    pub(crate) fn new(f: &'a CsMat<f64>) -> Rows<'a> {
+    pub(crate) fn new(f: &'a Csr) -> Rows<'a> {
         Rows {
             ptr: f.indptr().to_proper().into_owned(),
             ind: f.indices(),
@@ -442,7 +442,7 @@ impl<'a> Rows<'a> {
 
     /// Column indices and values of row `i`.
     #[inline]
-    pub(crate) fn row(&self, i: usize) -> (&'a [usize], &'a [f64]) {
+    pub(crate) fn row(&self, i: usize) -> (&'a [u32], &'a [f64]) {
         let (lo, hi) = (self.ptr[i], self.ptr[i + 1]);
         (&self.ind[lo..hi], &self.val[lo..hi])
     }
@@ -454,6 +454,7 @@ pub(crate) fn gather(sys: &System, rows: &Rows, b: &[[f64; 3]], i: usize) -> [f6
     let (ind, val) = rows.row(i);
     let mut acc = [0.0; 3];
     for (&j, &f) in ind.iter().zip(val) {
+        let j = j as usize;
         let bj = b[j];
         for c in 0..3 {
             acc[c] += f * bj[c];
@@ -824,11 +825,11 @@ pub(crate) fn sweep_loop(
 pub(crate) mod testing {
     //! Test systems shared by the solvers' tests.
     use super::*;
-    use sprs::TriMat;
+    use crate::matrix::Triplets as TriMat;
 
     /// An owned system.
     pub struct Owned {
-        pub f: CsMat<f64>,
+        pub f: Csr,
         pub rho: Vec<[f64; 3]>,
         pub emit: Vec<[f64; 3]>,
         pub area: Vec<f64>,
@@ -841,7 +842,7 @@ pub(crate) mod testing {
     }
 
     /// CSR from dense rows, zeros left out.
-    pub fn dense(rows: &[&[f64]]) -> CsMat<f64> {
+    pub fn dense(rows: &[&[f64]]) -> Csr {
         let n = rows.len();
         let mut t = TriMat::new((n, rows.first().map_or(0, |r| r.len())));
         for (i, r) in rows.iter().enumerate() {
@@ -856,7 +857,7 @@ pub(crate) mod testing {
 
     /// The notes' infinite shelf: strips A (floor, width 1), B (back, width g = sqrt 3),
     /// C (top, width 1), exact 2D (crossed-strings) form factors.
-    pub fn shelf_f() -> (CsMat<f64>, Vec<f64>) {
+    pub fn shelf_f() -> (Csr, Vec<f64>) {
         let g = 3f64.sqrt();
         let (a, b) = (1.0, g);
         let f_ab = (1.0 + g - (1.0 + g * g).sqrt()) / 2.0;
@@ -1348,7 +1349,7 @@ mod tests {
             assert!(report.converged && report.iterations == 0);
             assert!(b.iter().flatten().all(|&v| v == 0.0));
         }
-        let f = CsMat::<f64>::zero((0, 0));
+        let f = Csr::zero((0, 0));
         let sys = System::new(&f, &[], &[], &[]).unwrap();
         for method in Method::ALL {
             let (b, report) = solve(method, &sys, &Options::default()).unwrap();

@@ -43,7 +43,7 @@
 //! reflectance, and show `B_i + rho_i * ambient`. See [`ambient_term`], [`ambient`] and
 //! [`progressive_steps`].
 
-use sprs::CsMat;
+use crate::matrix::Csr;
 
 use super::{
     abs_residual, divergence, diverging, finish, max3, Gain, Options, Outcome, Prologue, Rows,
@@ -93,12 +93,13 @@ impl State {
         let fii: f64 = ind
             .iter()
             .zip(val)
-            .filter(|(&j, _)| j == i)
+            .filter(|(&j, _)| j as usize == i)
             .map(|(_, &f)| f)
             .sum();
         let (d, rho_i) = (self.unshot[i], sys.rho[i]);
         let s = [0, 1, 2].map(|c| d[c] / (1.0 - rho_i[c] * fii));
         for (&j, &f_ji) in ind.iter().zip(val) {
+            let j = j as usize;
             if j == i {
                 continue;
             }
@@ -117,7 +118,7 @@ impl State {
 }
 
 /// The rows of `F^T` (the columns of `F`), for shooting.
-fn transpose(f: &CsMat<f64>) -> CsMat<f64> {
+fn transpose(f: &Csr) -> Csr {
     f.transpose_view().to_csr()
 }
 

@@ -28,7 +28,7 @@ use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::formfactor::{
-    AreaMc, Context, Estimator, Hemicube, Hemisphere, Nodes, Pattern, Row, SemiAnalytic,
+    AreaMc, Context, Estimator, Hemicube, Hemisphere, Nodes, Pattern, Row, Scratch, SemiAnalytic,
 };
 use crate::mesh::{PatchSet, Resolution};
 use crate::output::chart::{line_chart, Series};
@@ -166,21 +166,20 @@ pub fn run_one(p: &Prepared, kind: Kind, budget: usize, seed: u64) -> Run {
                 replicates: REPLICATES,
             };
             let (a, b) = (i.min(j), i.max(j));
-            area.pair_with(&ctx, a, b, &mut row.rays, &mut |segs, out| {
-                p.vis.segments_visible_soa(segs, out)
-            })
-            .map(|e| {
-                if a == i {
-                    (e.f, e.se)
-                } else {
-                    // Stored as F_ab with a = j: F_ij = F_ji A_j / A_i.
-                    let s = p.patches.area[j] / p.patches.area[i];
-                    (e.f * s, e.se * s)
-                }
-            })
+            let mut s = Scratch::default();
+            area.pair_with(&ctx, a, b, &mut row.rays, &p.vis, &mut s)
+                .map(|e| {
+                    if a == i {
+                        (e.f, e.se)
+                    } else {
+                        // Stored as F_ab with a = j: F_ij = F_ji A_j / A_i.
+                        let s = p.patches.area[j] / p.patches.area[i];
+                        (e.f * s, e.se * s)
+                    }
+                })
         }
         _ => {
-            est.row(&ctx, i, &mut row);
+            est.row(&ctx, i, &mut row, &mut Scratch::default());
             row.entries
                 .iter()
                 .find(|e| e.j as usize == j)

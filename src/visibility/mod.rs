@@ -1,9 +1,11 @@
 //! Visibility queries between points of the scene, hiding the ray tracer behind them.
 //!
-//! Estimators ask two questions: is the segment between two surface points free
-//! ([`Visibility::segments_visible`], [`Visibility::segments_visible_soa`]), and what does
-//! a ray from a surface point hit first ([`Visibility::first_hit`],
-//! [`Visibility::first_front_hits_soa`]).
+//! Estimators ask two questions, through the [`Tracer`] trait over named
+//! structure-of-arrays batches ([`Segments`], [`Rays`]): is the segment between two
+//! surface points free, and what does a ray from a surface point hit first.
+//! [`Visibility`] answers them over Embree (also one ray at a time,
+//! [`Visibility::first_hit`], and for arrays of [`SegmentRay`]s,
+//! [`Visibility::segments_visible`]); the benchmark's recorder answers them with a stub.
 //!
 //! Geometry arrives in `f64`; this module is where it becomes `f32` for Embree (the
 //! vertex buffer, ray origins and directions). The offset policy lives here, in one place
@@ -150,6 +152,31 @@ impl Segments<'_> {
 
 /// A ray `(origin, unit direction)` for closest-hit queries.
 pub type Ray = (Vec3, Vec3);
+
+/// The narrow interface between the estimators and the ray tracer: the two batched
+/// queries they make, over named structure-of-arrays ray batches. [`Visibility`]
+/// implements it over Embree; the benchmark implements it as a recorder of the rays asked
+/// for. The rays an estimator asks for never depend on the answers.
+pub trait Tracer {
+    /// `out[k]` is true when nothing blocks segment k (as made by
+    /// [`Visibility::segment_ray`] or the same [`Offsets`] policy).
+    fn segments_visible(&self, segs: &Segments, out: &mut [bool]);
+    /// `out[k]` is the patch whose front side ray k meets first, or [`NO_HIT`] (origins
+    /// already offset, as by [`Visibility::first_hit_origin`]).
+    fn first_front_hits(&self, rays: &Rays, out: &mut [u32]);
+}
+
+impl Tracer for Visibility {
+    #[inline]
+    fn segments_visible(&self, segs: &Segments, out: &mut [bool]) {
+        self.segments_visible_soa(segs, out)
+    }
+
+    #[inline]
+    fn first_front_hits(&self, rays: &Rays, out: &mut [u32]) {
+        self.first_front_hits_soa(rays, out)
+    }
+}
 
 /// The patch id [`Visibility::first_front_hits_soa`] reports for a ray that hits nothing.
 pub const NO_HIT: u32 = u32::MAX;
