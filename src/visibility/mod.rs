@@ -200,6 +200,14 @@ pub struct Visibility {
     offsets: Offsets,
 }
 
+/// Fewest segment rays traced as one `rtcOccluded16` packet; shorter runs go one
+/// `rtcOccluded1` each. A coherent full packet ran at 1.7 to 2.2 times the single-ray rate
+/// (`docs/PERFORMANCE.md`, section 2), so a packet costs about 8 single rays: the
+/// semi-analytic estimator's batches of 4 rays per node ran its stage at about 0.23 of the
+/// raw loop as packets against 0.25-0.26 as single rays (400-patch Cornell box, shared
+/// machine).
+pub const PACKET_MIN: usize = 8;
+
 /// Bit of [`Visibility`]'s `tri_front` entries: winding normal along the patch normal.
 const ALONG: u32 = 1 << 31;
 
@@ -294,8 +302,8 @@ impl Visibility {
     }
 
     /// [`Visibility::segments_visible`] of segment rays given as structure of arrays: one
-    /// `rtcOccluded16` per 16 rays (the last packet partly filled), each filled by copying
-    /// 16-float runs.
+    /// `rtcOccluded16` per 16 rays, each filled by copying 16-float runs; a last run of
+    /// fewer than [`PACKET_MIN`] rays goes one `rtcOccluded1` per ray.
     #[inline]
     pub fn segments_visible_soa(&self, segs: &Segments, out: &mut [bool]) {
         let n = segs.len();
@@ -304,9 +312,18 @@ impl Visibility {
             #[inline(always)]
             || {
                 for ((org, dir), out) in segs.rays.packets16().zip(out[..n].chunks_mut(16)) {
-                    self.scene.occluded16_soa(org, dir, segs.tfar, out);
-                    for v in out.iter_mut() {
-                        *v = !*v;
+                    let len = org[0].len();
+                    if len >= PACKET_MIN {
+                        self.scene.occluded16_soa(org, dir, segs.tfar, out);
+                        for v in out.iter_mut() {
+                            *v = !*v;
+                        }
+                    } else {
+                        for (k, v) in out.iter_mut().enumerate().take(len) {
+                            let o = Vec3::new(org[0][k], org[1][k], org[2][k]);
+                            let d = Vec3::new(dir[0][k], dir[1][k], dir[2][k]);
+                            *v = !self.scene.occluded1(o, d, 0.0, segs.tfar);
+                        }
                     }
                 }
             },
