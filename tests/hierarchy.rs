@@ -28,7 +28,11 @@ fn closed_cube_links_sum_to_one_and_the_furnace_holds() {
     // Refined (so the test is not of the roots alone), every leaf's factors sum to 1.
     assert!(sol.elements.len() > 1000);
     let r = &sol.report;
-    assert!((r.max_row_sum.0 - 1.0).abs() < 1e-8, "largest factor sum {:?}", r.max_row_sum);
+    assert!(
+        (r.max_row_sum.0 - 1.0).abs() < 1e-8,
+        "largest factor sum {:?}",
+        r.max_row_sum
+    );
     for l in sol.elements.leaves() {
         for c in sol.state.b[l as usize] {
             assert!((c - 2.0).abs() < 1e-6, "leaf {l}: B = {c}");

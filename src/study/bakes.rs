@@ -213,6 +213,9 @@ pub struct Run {
     /// Relative error of each probe point (in reference order), `None` where no triangle
     /// held it.
     pub points: Vec<Option<f64>>,
+    /// The bake's luminance at every reference row (faces and points, in order), `None`
+    /// where it has none.
+    pub values: Vec<Option<f64>>,
 }
 
 /// CPU seconds of this process so far (user + system, every thread), from
@@ -241,26 +244,31 @@ fn score(
     verts: &VertexRadiosity,
     faces: usize,
     diag: f64,
-) -> (f64, Vec<Option<f64>>) {
+) -> (f64, Vec<Option<f64>>, Vec<Option<f64>>) {
     let avg = face_averages(set, obj_face, areas, b, faces);
     let mut face_max = 0.0f64;
     let mut points = Vec::new();
+    let mut values = Vec::new();
     for r in refs {
         let want = luminance(r.b);
         if r.kind == "face" {
-            if let Some(Some(got)) = r.id.parse::<usize>().ok().and_then(|f| avg.get(f)) {
-                face_max = face_max.max((luminance(*got) - want).abs() / want);
-                if std::env::var("FACEDBG").is_ok() {
-                    eprintln!("face {} {}: got {:.5} want {:.5} ({:+.2}%)", r.id, r.note.split(';').next().unwrap_or(""), luminance(*got), want, 100.0 * (luminance(*got) / want - 1.0));
-                }
+            let got =
+                r.id.parse::<usize>()
+                    .ok()
+                    .and_then(|f| avg.get(f).copied().flatten());
+            if let Some(got) = got {
+                face_max = face_max.max((luminance(got) - want).abs() / want);
             }
+            values.push(got.map(luminance));
         } else if r.kind == "point" {
-            points.push(
-                probe(verts, r.p, r.n, 1e-4 * diag).map(|g| (luminance(g) - want).abs() / want),
-            );
+            let got = probe(verts, r.p, r.n, 1e-4 * diag);
+            points.push(got.map(|g| (luminance(g) - want).abs() / want));
+            values.push(got.map(luminance));
+        } else {
+            values.push(None);
         }
     }
-    (face_max, points)
+    (face_max, points, values)
 }
 
 /// What to run.
@@ -308,8 +316,16 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
             pipeline::solve_radiosity(&patches, &ff, Method::GaussSeidel, &Options::default())?;
         let verts = interpolate(&patches, &b, 30.0);
         let (cpu, wall) = (cpu_seconds() - c0, t0.elapsed().as_secs_f64());
-        let (face_max, points) =
-            score(&refs, &obj, &patches, &patches.area, &b, &verts, faces, patches.diagonal);
+        let (face_max, points, values) = score(
+            &refs,
+            &obj,
+            &patches,
+            &patches.area,
+            &b,
+            &verts,
+            faces,
+            patches.diagonal,
+        );
         runs.push(Run {
             method: BakeKind::Flat(n),
             patches: patches.len(),
@@ -319,6 +335,7 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
             wall,
             face_max,
             points,
+            values,
         });
     }
     for &err in &s.errors {
@@ -327,7 +344,6 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
         let vis = Visibility::new(&patches)?;
         let settings = hierarchy::Settings {
             error: err,
-            rays: std::env::var("LRAYS").ok().and_then(|v| v.parse().ok()).unwrap_or(4),
             ..Default::default()
         };
         let sol = hierarchy::run(&patches, &vis, &settings, &|_| {})?;
@@ -335,8 +351,16 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
         let verts = interpolate(&leaves, &b, 30.0);
         let (cpu, wall) = (cpu_seconds() - c0, t0.elapsed().as_secs_f64());
         let areas: Vec<f64> = ids.iter().map(|&l| sol.elements.area[l as usize]).collect();
-        let (face_max, points) =
-            score(&refs, &obj, &leaves, &areas, &b, &verts, faces, patches.diagonal);
+        let (face_max, points, values) = score(
+            &refs,
+            &obj,
+            &leaves,
+            &areas,
+            &b,
+            &verts,
+            faces,
+            patches.diagonal,
+        );
         runs.push(Run {
             method: BakeKind::Hierarchical(err),
             patches: sol.report.leaves,
@@ -346,6 +370,7 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
             wall,
             face_max,
             points,
+            values,
         });
     }
     write(s, &runs, &refs)?;
@@ -405,13 +430,38 @@ fn write(s: &Settings, runs: &[Run], refs: &[Probe]) -> Result<()> {
             fmt(all)
         );
     }
+    let mut probes = String::from("kind,id,reference");
+    for r in runs {
+        let (m, p) = label(&r.method);
+        let _ = write!(probes, ",{m} {p}");
+    }
+    probes.push('\n');
+    for (k, p) in refs.iter().enumerate() {
+        let _ = write!(probes, "{},{},{:.6}", p.kind, p.id, luminance(p.b));
+        for r in runs {
+            let _ = write!(
+                probes,
+                ",{}",
+                r.values
+                    .get(k)
+                    .copied()
+                    .flatten()
+                    .map_or(String::new(), |v| format!("{v:.6}"))
+            );
+        }
+        probes.push('\n');
+    }
+    let path = s.out.join("probes.csv");
+    write_atomic(&path, |tmp| {
+        std::fs::write(tmp, probes.as_bytes()).map_err(|e| Error::io(tmp, e))
+    })?;
     let path = s.out.join("bakes.csv");
     write_atomic(&path, |tmp| {
         std::fs::write(tmp, csv.as_bytes()).map_err(|e| Error::io(tmp, e))
     })?;
     for (word, what) in [
         ("face", "largest face-average error"),
-        ("contact", "largest error 5-15 mm from the blocks"),
+        ("block-", "largest error 5-15 mm from the blocks"),
         ("shadow", "largest error in the tall block's shadow"),
     ] {
         for (x_of, x_label, tag) in [(0, "CPU seconds", "cpu"), (1, "rays", "rays")] {
@@ -434,7 +484,8 @@ fn write(s: &Settings, runs: &[Run], refs: &[Probe]) -> Result<()> {
             }
             let title = format!("Cornell box: {what} vs {x_label} (reference: Mitsuba 3)");
             chart(
-                &s.out.join(format!("{}-vs-{tag}", word.trim_end_matches('-'))),
+                &s.out
+                    .join(format!("{}-vs-{tag}", word.trim_end_matches('-'))),
                 &Spec {
                     title: &title,
                     x_label,
