@@ -8,11 +8,15 @@
 //! `Scene` ([`scene`]) → `PatchSet` ([`mesh`]) → `FormFactors` ([`formfactor`] over
 //! [`visibility`], assembled by [`matrix`]) → radiosity ([`solve`]) → per-vertex values and
 //! files ([`output`]); [`pipeline`] is the only place that knows the order and times it.
+//! The hierarchical path branches after the mesh: root patches → element tree and links
+//! refined where the light needs them, solved on the tree ([`hierarchy`], over
+//! [`visibility`] and the exact integral of [`formfactor::exact`]) → the leaves as a
+//! crack-free mesh → the same per-vertex values and files.
 //!
 //! ## No import cycles
 //! The modules form an acyclic graph: a module refers only to modules upstream of it
 //! (`error`, `input`, `budget`, `scene`, `mesh`, `sampling`, `simd`, `visibility`,
-//! `analytic`, `matrix`, `formfactor`, `repair`, `solve`, `output`, `store`, `pipeline`,
+//! `analytic`, `matrix`, `formfactor`, `hierarchy`, `repair`, `solve`, `output`, `store`, `pipeline`,
 //! then the consumers `study` and `bench`). The test `tests::module_graph_is_acyclic` at
 //! the bottom of this file checks it: it reads every file under `src/`, takes each
 //! `crate::MODULE` path in the code before the file's `#[cfg(test)]` (comments and doc

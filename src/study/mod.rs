@@ -13,7 +13,8 @@
 //! so the numbers (but not the times) are the same on any thread count. The hemicube has
 //! no randomness: its seeds repeat the same number.
 //!
-//! The solver study ([`solvers`], `radiosity study-solvers`) lives here too: both studies
+//! The solver study ([`solvers`], `radiosity study-solvers`) and the bake study ([`bakes`],
+//! `radiosity study-bakes`) live here too: the studies
 //! drive the pipeline and write files, so they sit downstream of every stage.
 
 pub mod bakes;
