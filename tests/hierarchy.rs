@@ -96,24 +96,7 @@ fn watertight_input_gives_a_watertight_mesh() {
 /// slice reproduces the table.
 #[test]
 fn shelf_table_on_the_hierarchy() {
-    let table: [([f64; 3], [f64; 3], [f64; 3]); 4] = [
-        (
-            [0.0, 0.5, 1.0 / 3.0],
-            [1.0, 0.0, 0.0],
-            [1.0, 0.11660, 0.10354],
-        ),
-        (
-            [0.1, 0.5, 1.0 / 3.0],
-            [1.0, 0.0, 0.0],
-            [1.00709, 0.11743, 0.10428],
-        ),
-        ([0.5, 0.0, 0.5], [0.0, 1.0, 0.0], [0.21133, 1.0, 0.21133]),
-        (
-            [0.1, 0.1, 0.5],
-            [1.0, 1.0, 0.0],
-            [1.04647, 1.02906, 0.32853],
-        ),
-    ];
+    let table = crate::shelf::TABLE;
     let mut scene = Scene::load("shelf").expect("shelf");
     let (lo, hi) = scene.bounds();
     let mid_x = 0.5 * (lo.x + hi.x);

@@ -9,7 +9,7 @@ use radiosity::solve::{Method, Options};
 
 /// (rho_A, rho_B, rho_C), (E_A, E_B, E_C), (B_A, B_B, B_C) as printed in the notes
 /// (row 4's B_B restored to 1.02906, see NOTES.md).
-const TABLE: [([f64; 3], [f64; 3], [f64; 3]); 4] = [
+pub(crate) const TABLE: [([f64; 3], [f64; 3], [f64; 3]); 4] = [
     (
         [0.0, 0.5, 1.0 / 3.0],
         [1.0, 0.0, 0.0],

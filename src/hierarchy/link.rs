@@ -203,6 +203,29 @@ pub struct Context<'a> {
     pub tol: f64,
 }
 
+impl<'a> Context<'a> {
+    /// The context of a solution with settings `s` and facing tolerance `tol`.
+    pub fn new(
+        elements: &'a Elements,
+        patches: &'a PatchSet,
+        vis: &'a Visibility,
+        blockers: &'a Blockers,
+        s: &super::Settings,
+        tol: f64,
+    ) -> Context<'a> {
+        Context {
+            elements,
+            patches,
+            vis,
+            blockers,
+            seed: s.seed,
+            rays: s.rays,
+            quadrature: s.quadrature,
+            tol,
+        }
+    }
+}
+
 /// Parameter points of the 3 x 3 grid the oracle evaluates `F(x → P_s)` at.
 const GRID: [f64; 3] = [1.0 / 6.0, 0.5, 5.0 / 6.0];
 

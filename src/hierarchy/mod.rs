@@ -273,16 +273,7 @@ pub fn run(
         .collect();
     let mut links: Vec<Vec<Link>> = vec![Vec::new(); e.len()];
     {
-        let ctx = Context {
-            elements: &e,
-            patches,
-            vis,
-            blockers: &blockers,
-            seed: s.seed,
-            rays: s.rays,
-            quadrature: s.quadrature,
-            tol,
-        };
+        let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
         let tols = factor_tolerances(&specs, &rho, &state.b, s.accuracy * s.error * b_ref);
         let cost = evaluate_into(&ctx, &specs, &tols, &mut links);
         report.rays += cost.rays;
@@ -320,16 +311,7 @@ pub fn run(
         // ancestor chains once it is final (or the passes run out).
         let last = (refined == 0 && pass_no > 0) || pass_no + 1 == s.max_passes.max(1);
         let stats = if last {
-            let ctx = Context {
-                elements: &e,
-                patches,
-                vis,
-                blockers: &blockers,
-                seed: s.seed,
-                rays: s.rays,
-                quadrature: s.quadrature,
-                tol,
-            };
+            let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
             let (gather, cost) = gather_lists(&ctx, &links, &rho, &state.b, s.accuracy * eps);
             report.evals += cost.evals;
             report.rays += cost.rays;
@@ -675,16 +657,7 @@ fn refine_links(
             });
             at = end;
         }
-        let ctx = Context {
-            elements: e,
-            patches,
-            vis,
-            blockers,
-            seed: s.seed,
-            rays: s.rays,
-            quadrature: s.quadrature,
-            tol,
-        };
+        let ctx = Context::new(e, patches, vis, blockers, s, tol);
         let (rho, _) = materials(e, &material);
         let tols = factor_tolerances(&specs, &rho, &state.b, s.accuracy * eps);
         let cost = evaluate_into(&ctx, &specs, &tols, links);
