@@ -136,20 +136,14 @@ pub fn solve(
         for (k, &(b, h)) in new.iter().enumerate() {
             let l = g.leaves[k] as usize;
             if !e.buried[l] {
-                for (&new, &old) in b.iter().zip(&state.b[l]) {
-                    change = change.max((new - old).abs() / new.abs().max(floor));
-                }
+                change = change.max(relative_change(&b, &state.b[l], floor));
             }
             state.b[l] = b;
             state.h[l] = h;
             state.spread[l] = [0.0; 3];
         }
         pull(e, &vis, state);
-        stats = SolveStats {
-            iterations: it + 1,
-            change,
-            converged: change <= tol,
-        };
+        stats = iteration_stats(it, change, tol);
         if stats.converged {
             break;
         }
@@ -220,9 +214,7 @@ pub fn solve_push(
                     std::array::from_fn(|c| m.emit[p][c] + m.rho[p][c] * h[c])
                 };
                 if !e.buried[p] {
-                    for (&n, &old) in new.iter().zip(&state.b[p]) {
-                        change = change.max((n - old).abs() / n.abs().max(floor));
-                    }
+                    change = change.max(relative_change(&new, &state.b[p], floor));
                 }
                 state.b[p] = new;
                 state.h[p] = if e.buried[p] { [0.0; 3] } else { h };
@@ -231,16 +223,30 @@ pub fn solve_push(
         }
         // 3. Pull (children first).
         pull(e, &vis, state);
-        stats = SolveStats {
-            iterations: it + 1,
-            change,
-            converged: change <= tol,
-        };
+        stats = iteration_stats(it, change, tol);
         if stats.converged {
             break;
         }
     }
     stats
+}
+
+/// The stopping rule's measure for one leaf: the largest change over channels, relative to
+/// the new value (at least `floor`).
+fn relative_change(new: &[f64; 3], old: &[f64; 3], floor: f64) -> f64 {
+    new.iter()
+        .zip(old)
+        .map(|(&n, &o)| (n - o).abs() / n.abs().max(floor))
+        .fold(0.0, f64::max)
+}
+
+/// The stats after iteration `it` (0-based) with the given change.
+fn iteration_stats(it: usize, change: f64, tol: f64) -> SolveStats {
+    SolveStats {
+        iterations: it + 1,
+        change,
+        converged: change <= tol,
+    }
 }
 
 /// Sets every parent's radiosity to the visible-area average of its children, and its
