@@ -51,6 +51,10 @@ enum Command {
 
 #[derive(Args, Debug)]
 struct StudyBakesArgs {
+    /// Scene: a name in scenes/ or an OBJ path (the reference must describe the same
+    /// faces, in the same order).
+    #[arg(long, default_value = "cornell")]
+    scene: String,
     /// Output folder.
     #[arg(short, long, default_value = "docs/hierarchy")]
     output: PathBuf,
@@ -506,6 +510,7 @@ fn bake(args: &BakeArgs) -> Result<()> {
 fn study_bakes(args: &StudyBakesArgs) -> Result<()> {
     use radiosity::study::bakes;
     let settings = bakes::Settings {
+        scene: args.scene.clone(),
         reference: args.reference.clone(),
         flat: args.flat.clone(),
         errors: args.errors.clone(),

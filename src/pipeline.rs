@@ -558,7 +558,7 @@ fn bake_hierarchical(
         });
     }
     let verts = timer.run("per-vertex", 0, || {
-        output::interpolate(&leaves, &b, cfg.crease_deg)
+        output::interpolate_with(&leaves, &b, cfg.crease_deg, output::Nodal::Linear)
     });
     let files = timer.run("write", 0, || {
         write_bake(cfg, &scene, &verts, |_, _, _| Ok(Vec::new()))

@@ -44,6 +44,11 @@ pub struct Elements {
     /// floor under a box standing on it. Buried leaves do not count as surface: they are
     /// left out of visible areas, averages and power sums.
     pub buried: Vec<bool>,
+    /// A leaf that is not buried but may have a part inside a closed solid: crossed by a
+    /// contact line, or some of its buried-test rays met the back of a face. Its
+    /// ancestors' visibility (sampled on their unburied leaves) says nothing of it, so it
+    /// traces its own.
+    pub partly: Vec<bool>,
     /// Number of roots (elements `0..roots`).
     pub roots: usize,
 }
@@ -95,6 +100,7 @@ impl Elements {
         self.first_child.push(NONE);
         self.level.push(level);
         self.buried.push(false);
+        self.partly.push(false);
         id
     }
 
@@ -162,6 +168,52 @@ impl Elements {
             };
         }
         vis
+    }
+
+    /// The leaf below `e` that holds the point of `e` at parameters `(u, v)`, and the
+    /// point's parameters in that leaf. Splits are in parameter space: a quad's child `k`
+    /// is its quarter `(u, v) ∈ [0, ½]² , [½, 1] × [0, ½], [½, 1]², [0, ½] × [½, 1]`; a
+    /// triangle's (collapsed map, barycentrics `λ = (1 - u, u (1 - v), u v)`) is the corner
+    /// triangle at `c_k` where `λ_k ≥ ½`, else the middle one.
+    pub fn locate(&self, mut e: u32, mut u: f64, mut v: f64) -> (u32, f64, f64) {
+        while !self.is_leaf(e) {
+            let c = self.first_child[e as usize];
+            match self.piece[e as usize] {
+                crate::formfactor::exact::Piece::Quad(_) => {
+                    let (hu, hv) = (u >= 0.5, v >= 0.5);
+                    let k = match (hu, hv) {
+                        (false, false) => 0,
+                        (true, false) => 1,
+                        (true, true) => 2,
+                        (false, true) => 3,
+                    };
+                    u = if hu { 2.0 * u - 1.0 } else { 2.0 * u };
+                    v = if hv { 2.0 * v - 1.0 } else { 2.0 * v };
+                    e = c + k;
+                }
+                crate::formfactor::exact::Piece::Tri(_) => {
+                    let l = [1.0 - u, u * (1.0 - v), u * v];
+                    // The child's barycentrics, by the corner maps of `Piece::split`.
+                    let (k, m) = if l[0] >= 0.5 {
+                        (0, [1.0 - 2.0 * (l[1] + l[2]), 2.0 * l[1], 2.0 * l[2]])
+                    } else if l[1] >= 0.5 {
+                        (1, [2.0 * l[0], 1.0 - 2.0 * (l[0] + l[2]), 2.0 * l[2]])
+                    } else if l[2] >= 0.5 {
+                        (2, [2.0 * l[0], 2.0 * l[1], 1.0 - 2.0 * (l[0] + l[1])])
+                    } else {
+                        (3, [1.0 - 2.0 * l[0], 1.0 - 2.0 * l[1], 1.0 - 2.0 * l[2]])
+                    };
+                    u = (1.0 - m[0]).clamp(0.0, 1.0);
+                    v = if u > 0.0 {
+                        (m[2] / u).clamp(0.0, 1.0)
+                    } else {
+                        0.0
+                    };
+                    e = c + k;
+                }
+            }
+        }
+        (e, u, v)
     }
 
     /// The point of `e` at parameters `(u, v)` in the unit square, and the area Jacobian.
@@ -258,6 +310,35 @@ mod tests {
         let mid_a = ka[1].corners()[2]; // m12 of a
         let mid_b = kb[0].corners()[3]; // m30 of b
         assert_eq!(mid_a.to_array(), mid_b.to_array());
+    }
+
+    #[test]
+    fn locate_finds_the_leaf_holding_a_point() {
+        let mut e = Elements::default();
+        e.add_root(unit_quad(), DVec3::Z);
+        let tri = Piece::Tri([DVec3::ZERO, DVec3::X, DVec3::new(0.3, 1.7, 0.2)]);
+        e.add_root(tri, DVec3::Z);
+        for root in [0u32, 1] {
+            let kids = e.split(root);
+            e.split(kids[1]);
+            e.split(kids[3]);
+        }
+        let mut rng = crate::sampling::Pcg32::keyed(7, 1, 2, 3);
+        for root in [0u32, 1] {
+            for _ in 0..2000 {
+                let (u, v) = (rng.next_f64(), rng.next_f64());
+                let x = e.point(root, u, v).0;
+                let (leaf, lu, lv) = e.locate(root, u, v);
+                assert!(e.is_leaf(leaf));
+                let mut a = leaf;
+                while e.parent[a as usize] != NONE {
+                    a = e.parent[a as usize];
+                }
+                assert_eq!(a, root);
+                let y = e.point(leaf, lu, lv).0;
+                assert!(x.distance(y) < 1e-12, "{x} vs {y} in leaf {leaf}");
+            }
+        }
     }
 
     #[test]

@@ -18,8 +18,14 @@
 //! - otherwise `n x n` jittered points on the receiver are paired with `n x n` jittered
 //!   points on the source (a random permutation of the strata) and each segment is traced;
 //!   `v` is the kernel-weighted visible fraction `Σ G V / Σ G` (the Jacobians of both
-//!   parameter maps included). All rays free: *visible*; none: *hidden* (the link is
-//!   dropped); some: *partial*, a shadow boundary runs through the pair.
+//!   parameter maps included), with receiver points on its unburied part only. All rays
+//!   free: *visible*; some: *partial*, a shadow boundary runs through the pair; none:
+//!   *hidden*, dropped only when what the rays may have missed is within the tolerance,
+//!   else kept as partial with `v = 0` (see [`evaluate`]).
+//!
+//! A link's factor is per *visible* area of the receiver: the mean of `F v` over its
+//! unburied part (what a box standing on it covers receives nothing and counts for
+//! nothing).
 //!
 //! The oracle's variation `ΔF`: Lambert's factor is evaluated at a 3 x 3 grid of points of
 //! the receiver; a visible link's `ΔF` is their range (plus the quadrature error), a
@@ -130,6 +136,11 @@ impl Blockers {
         self.candidates.is_empty()
     }
 
+    /// True when [`Blockers::unoccluded`] can prove anything: few enough candidates.
+    pub fn provable(&self) -> bool {
+        self.candidates.len() <= MAX_PROOF_BLOCKERS
+    }
+
     /// True when no patch can block any segment between points of `a` and `b` (roots
     /// `ra`, `rb`): for each candidate, its box misses the pair's box, or it lies on or
     /// behind the plane of `a` or of `b`, or both elements lie on one side of its plane
@@ -201,6 +212,8 @@ pub struct Context<'a> {
     pub quadrature: f64,
     /// Scale-relative tolerance of the facing tests.
     pub tol: f64,
+    /// Visible (unburied) area of every element ([`Elements::visible_areas`]).
+    pub visible: Vec<f64>,
 }
 
 impl<'a> Context<'a> {
@@ -222,6 +235,7 @@ impl<'a> Context<'a> {
             rays: s.rays,
             quadrature: s.quadrature,
             tol,
+            visible: elements.visible_areas(),
         }
     }
 }
@@ -229,16 +243,41 @@ impl<'a> Context<'a> {
 /// Parameter points of the 3 x 3 grid the oracle evaluates `F(x → P_s)` at.
 const GRID: [f64; 3] = [1.0 / 6.0, 0.5, 5.0 / 6.0];
 
+/// The tolerances a candidate link is evaluated to, both on the factor `F_rs`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Tolerance {
+    /// Absolute tolerance of the unoccluded integral (looser of this and the relative
+    /// [`Context::quadrature`]).
+    pub factor: f64,
+    /// How much factor a link may lose by being dropped as hidden: a share of the link
+    /// tolerance over `ρ_r B_s` ([`super::Settings::hide`]).
+    pub hide: f64,
+}
+
 /// Evaluates the link `r ← s`; `None` when the two cannot exchange light (one behind the
-/// other's plane, or every visibility ray blocked). The unoccluded integral is taken to
-/// the relative tolerance [`Context::quadrature`] or the absolute tolerance `f_tol` on
-/// `F_rs`, whichever is looser: a link that carries little light needs few digits.
-pub fn evaluate(ctx: &Context, r: u32, s: u32, f_tol: f64) -> (Option<Link>, Cost) {
+/// other's plane, one buried, or every visibility ray blocked where even the light the
+/// rays could have missed is within the tolerance). The unoccluded integral is taken to
+/// the relative tolerance [`Context::quadrature`] or the absolute tolerance
+/// `tol.factor` on `F_rs`, whichever is looser: a link that carries little light needs
+/// few digits.
+///
+/// **Hidden or not.** `n` blocked rays out of `n` do not prove the pair hidden: with
+/// probability 95% the visible fraction is below `3 / n` (the rule of three), and the
+/// rays say nothing of where a small visible part lies (a strip of floor beside a box,
+/// when the rest of the receiver is in the box's shadow). A link whose rays are all
+/// blocked is dropped only when `3 / n` of its unoccluded factor is within `tol.hide`;
+/// otherwise it is kept as a partly visible link with visible fraction 0, so that the
+/// oracle refines it like a shadow boundary and the leaves below trace their own
+/// visibility.
+pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>, Cost) {
     let e = ctx.elements;
     let (ri, si) = (r as usize, s as usize);
     let (pr, ps) = (e.corners(r), e.corners(s));
     let (nr, ns) = (e.normal[ri], e.normal[si]);
     let mut cost = Cost::default();
+    if ctx.visible[ri] <= 0.0 || ctx.visible[si] <= 0.0 {
+        return (None, cost);
+    }
     // Facing: some of s strictly in front of r, and some of r in front of s.
     if range((nr, e.centre[ri]), ps).1 <= ctx.tol || range((ns, e.centre[si]), pr).1 <= ctx.tol {
         return (None, cost);
@@ -265,7 +304,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, f_tol: f64) -> (Option<Link>, Cos
         nr,
         &receiver,
         ctx.quadrature,
-        f_tol.max(1e-15) * area,
+        tol.factor.max(1e-15) * area,
     );
     cost.evals += integral.evals;
     let f_open = (integral.value / area).max(0.0);
@@ -285,20 +324,31 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, f_tol: f64) -> (Option<Link>, Cos
         };
         return (Some(link), cost);
     }
-    let (v, rays) = visible_fraction(ctx, r, s);
-    cost.rays += rays;
-    if v <= 0.0 {
-        return (None, cost);
-    }
-    let n = (ctx.rays * ctx.rays) as f64;
-    let partial = v < 1.0;
-    let link = Link {
-        src: s,
-        f: f_open * v,
-        err: q_err + f_open * (v * (1.0 - v) / n).sqrt(),
-        df: if partial { fmax } else { fmax - fmin } + q_err,
-        partial,
-        vis: v,
+    let seen = visible_fraction(ctx, r, s);
+    cost.rays += seen.rays;
+    let n = seen.rays.max(1) as f64;
+    let link = if seen.v <= 0.0 {
+        if 3.0 / n * f_open <= tol.hide {
+            return (None, cost);
+        }
+        Link {
+            src: s,
+            f: 0.0,
+            err: q_err + f_open / (n + 1.0),
+            df: fmax + q_err,
+            partial: true,
+            vis: 0.0,
+        }
+    } else {
+        let partial = seen.v < 1.0;
+        Link {
+            src: s,
+            f: f_open * seen.v,
+            err: q_err + f_open * (seen.v * (1.0 - seen.v) / n).sqrt(),
+            df: if partial { fmax } else { fmax - fmin } + q_err,
+            partial,
+            vis: seen.v,
+        }
     };
     (Some(link), cost)
 }
@@ -330,17 +380,40 @@ pub fn open_factor(ctx: &Context, l: u32, s: u32, f_tol: f64) -> (f64, u64) {
     ((i.value / area).max(0.0), i.evals)
 }
 
-/// Kernel-weighted visible fraction between `r` and `s` from `rays²` traced segments, and
-/// the number of rays traced.
-pub fn visible_fraction(ctx: &Context, r: u32, s: u32) -> (f64, u64) {
+/// What the visibility rays of a pair found.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Seen {
+    /// Kernel-weighted visible fraction (0 when no ray could be traced).
+    pub v: f64,
+    /// Rays traced.
+    pub rays: u64,
+}
+
+/// Tries per stratum at finding a receiver point that is not buried.
+const BURIED_TRIES: usize = 4;
+
+/// Kernel-weighted visible fraction between `r` and `s` from `rays²` traced segments.
+///
+/// Receiver points are drawn only on the unburied part of `r` (a point whose leaf is
+/// buried is drawn again in its stratum, up to [`BURIED_TRIES`] times, then the stratum is
+/// skipped): the fraction is that of the surface that can receive, matching the link's
+/// factor per visible area ([`super::solve`]). Source points cover all of `s`, buried
+/// parts included, whose rays are blocked: what `r` sees of the source's radiating part.
+pub fn visible_fraction(ctx: &Context, r: u32, s: u32) -> Seen {
+    visible_fraction_n(ctx, r, s, ctx.rays)
+}
+
+/// [`visible_fraction`] with `n × n` rays instead of [`Context::rays`]² (a different
+/// stream for each `n`).
+pub fn visible_fraction_n(ctx: &Context, r: u32, s: u32, n: usize) -> Seen {
     let e = ctx.elements;
     let (nr, ns) = (e.normal[r as usize], e.normal[s as usize]);
-    let n = ctx.rays.max(1);
+    let n = n.max(1);
     let mut rng = Pcg32::keyed(
         ctx.seed,
         0x4852_4c4e_4b00_0000 | u64::from(r),
         u64::from(s),
-        0,
+        if n == ctx.rays { 0 } else { n as u64 },
     );
     let cells = n * n;
     // Source strata in random order (Fisher–Yates).
@@ -350,14 +423,23 @@ pub fn visible_fraction(ctx: &Context, r: u32, s: u32) -> (f64, u64) {
         perm.swap(k, j);
     }
     let inv = 1.0 / n as f64;
+    let whole = e.is_leaf(r);
     let mut segs: Vec<SegmentRay> = Vec::with_capacity(cells);
     let mut weights: Vec<f64> = Vec::with_capacity(cells);
     for (c, &d) in perm.iter().enumerate() {
         let (a, b) = ((c % n) as f64, (c / n) as f64);
-        let (x, jx) = e.point(r, (a + rng.next_f64()) * inv, (b + rng.next_f64()) * inv);
+        let mut at = None;
+        for _ in 0..BURIED_TRIES {
+            let (u, v) = ((a + rng.next_f64()) * inv, (b + rng.next_f64()) * inv);
+            if whole || !e.buried[e.locate(r, u, v).0 as usize] {
+                at = Some(e.point(r, u, v));
+                break;
+            }
+        }
         let d = d as usize;
         let (a2, b2) = ((d % n) as f64, (d / n) as f64);
         let (y, jy) = e.point(s, (a2 + rng.next_f64()) * inv, (b2 + rng.next_f64()) * inv);
+        let Some((x, jx)) = at else { continue };
         let w = y - x;
         let r2 = w.length_squared();
         let (cx, cy) = (nr.dot(w), -ns.dot(w));
@@ -368,7 +450,7 @@ pub fn visible_fraction(ctx: &Context, r: u32, s: u32) -> (f64, u64) {
         segs.push(ctx.vis.segment_ray(x, nr, y, ns));
     }
     if segs.is_empty() {
-        return (0.0, 0);
+        return Seen { v: 0.0, rays: 0 };
     }
     let mut free = vec![false; segs.len()];
     ctx.vis.segments_visible(&segs, &mut free);
@@ -385,7 +467,10 @@ pub fn visible_fraction(ctx: &Context, r: u32, s: u32) -> (f64, u64) {
     let v = if den > 0.0 { num / den } else { 0.0 };
     // All free: exactly visible (the ratio is 1 up to rounding).
     let v = if any_blocked { v.min(1.0 - 1e-12) } else { 1.0 };
-    (v, segs.len() as u64)
+    Seen {
+        v,
+        rays: segs.len() as u64,
+    }
 }
 
 #[cfg(test)]

@@ -43,9 +43,12 @@ use rayon::prelude::*;
 use crate::mesh::PatchSet;
 use crate::visibility::Visibility;
 use element::Elements;
-use link::{Blockers, Context, Cost, Link};
+use link::{Blockers, Context, Cost, Link, Tolerance};
 use refine::{Decision, Oracle};
 use solve::{Gather, Materials, SolveStats, State};
+
+/// Default [`Settings::hide`].
+pub const HIDE: f64 = 0.1;
 
 /// Settings of a hierarchical solution.
 #[derive(Clone, Debug, PartialEq)]
@@ -62,6 +65,13 @@ pub struct Settings {
     /// integrated to an absolute error of `accuracy × ε / (ρ_r B_s)` when that is looser
     /// than `quadrature` (set it tiny for factors to full precision everywhere).
     pub accuracy: f64,
+    /// Share of the link tolerance that a link whose rays were all blocked may carry and
+    /// still be dropped as hidden ([`link::evaluate`]): small, because such losses all have
+    /// one sign and add up over the links of a receiver.
+    pub hide: f64,
+    /// Share of the link tolerance above which the final gather replaces a split source
+    /// by its children ([`gather_lists`]).
+    pub descend: f64,
     /// Per-element relative change at which the solve stops.
     pub tolerance: f64,
     /// Iteration cap of each solve.
@@ -82,6 +92,8 @@ impl Default for Settings {
             rays: 4,
             quadrature: 1e-6,
             accuracy: 0.01,
+            hide: HIDE,
+            descend: 0.1,
             tolerance: 1e-7,
             max_iterations: 10_000,
             max_passes: 8,
@@ -111,6 +123,12 @@ impl Settings {
         }
         if !(self.accuracy >= 0.0 && self.accuracy.is_finite()) {
             return bad(format!("link accuracy must be >= 0, got {}", self.accuracy));
+        }
+        if !(self.hide >= 0.0 && self.hide.is_finite()) {
+            return bad(format!("hide share must be >= 0, got {}", self.hide));
+        }
+        if !(self.descend > 0.0 && self.descend.is_finite()) {
+            return bad(format!("descend share must be > 0, got {}", self.descend));
         }
         if !(self.quadrature > 0.0 && self.quadrature < 1.0) {
             return bad(format!(
@@ -274,7 +292,7 @@ pub fn run(
     let mut links: Vec<Vec<Link>> = vec![Vec::new(); e.len()];
     {
         let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
-        let tols = factor_tolerances(&specs, &rho, &state.b, s.accuracy * s.error * b_ref);
+        let tols = tolerances(&specs, &rho, &state.b, s.error * b_ref, s, b_ref);
         let cost = evaluate_into(&ctx, &specs, &tols, &mut links);
         report.rays += cost.rays;
         report.evals += cost.evals;
@@ -312,7 +330,8 @@ pub fn run(
         let last = (refined == 0 && pass_no > 0) || pass_no + 1 == s.max_passes.max(1);
         let stats = if last {
             let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
-            let (gather, cost) = gather_lists(&ctx, &links, &rho, &state.b, s.accuracy * eps);
+            let (gather, cost) =
+                gather_lists(&ctx, &links, &rho, &state, eps, s.accuracy, s.descend);
             report.evals += cost.evals;
             report.rays += cost.rays;
             report.gather = gather.len();
@@ -346,6 +365,7 @@ pub fn run(
                 s.max_iterations,
             )
         };
+        solve::estimate_spread(&e, &links, &rho, &mut state);
         b_ref = mean_radiosity(&e, &state).max(f64::MIN_POSITIVE);
         let pass = Pass {
             refined,
@@ -426,24 +446,37 @@ fn mean_radiosity(e: &Elements, state: &State) -> f64 {
     }
 }
 
-/// The absolute tolerance on `F_rs` of each candidate link: `budget / (ρ_r B_s)`, the
-/// channel maximum (infinite for a dark source).
-fn factor_tolerances(
+/// The tolerances of each candidate link `r ← s` on its factor `F_rs`, from the link
+/// tolerance `eps`: what it may lose by being dropped as hidden, `hide × eps / w`, and its
+/// quadrature error, `accuracy × eps / w`, with `w = max over channels of ρ_r B_s`
+/// (`hide`, `accuracy` from the settings `set`). A
+/// source whose radiosity is not known yet (0 before the first solve) is taken at the mean
+/// radiosity `b_mean`, so that links made early are neither dropped nor integrated more
+/// coarsely than later ones.
+fn tolerances(
     specs: &[(u32, u32)],
     rho: &[[f64; 3]],
     b: &[[f64; 3]],
-    budget: f64,
-) -> Vec<f64> {
+    eps: f64,
+    set: &Settings,
+    b_mean: f64,
+) -> Vec<Tolerance> {
     specs
         .iter()
         .map(|&(r, t)| {
             let w = (0..3)
-                .map(|c| rho[r as usize][c] * b[t as usize][c])
+                .map(|c| rho[r as usize][c] * b[t as usize][c].max(b_mean))
                 .fold(0.0, f64::max);
             if w > 0.0 {
-                budget / w
+                Tolerance {
+                    factor: set.accuracy * eps / w,
+                    hide: set.hide * eps / w,
+                }
             } else {
-                f64::INFINITY
+                Tolerance {
+                    factor: f64::INFINITY,
+                    hide: f64::INFINITY,
+                }
             }
         })
         .collect()
@@ -455,13 +488,13 @@ fn factor_tolerances(
 fn evaluate_into(
     ctx: &Context,
     specs: &[(u32, u32)],
-    tols: &[f64],
+    tols: &[Tolerance],
     links: &mut [Vec<Link>],
 ) -> Cost {
     let out: Vec<(Option<Link>, Cost)> = specs
         .par_iter()
         .zip(tols)
-        .map(|(&(r, t), &f_tol)| link::evaluate(ctx, r, t, f_tol))
+        .map(|(&(r, t), &tol)| link::evaluate(ctx, r, t, tol))
         .collect();
     let mut cost = Cost::default();
     for (&(r, _), (l, c)) in specs.iter().zip(out) {
@@ -473,60 +506,191 @@ fn evaluate_into(
     cost
 }
 
+/// Rays per side of the check that a leaf sees all of a source its ancestor's link found
+/// visible: `CHECK_RAYS²` rays, all free or the leaf traces its own visibility.
+const CHECK_RAYS: usize = 2;
+
+/// Where a gather entry's visible fraction comes from.
+#[derive(Clone, Copy)]
+enum Sight {
+    /// The link's (fraction, relative bar).
+    Given(f64, f64),
+    /// The link's, if a few rays from the leaf confirm it; else traced.
+    Check(f64, f64),
+    /// Traced from the leaf.
+    Trace,
+}
+
+/// One entry of a leaf's gather list while it is built.
+#[derive(Clone, Copy)]
+struct Entry {
+    src: u32,
+    /// Factor, visibility included.
+    f: f64,
+    /// Visible fraction.
+    v: f64,
+    /// Relative error bar of the visible fraction.
+    v_bar: f64,
+    /// Absolute quadrature bar of the unoccluded factor.
+    q_bar: f64,
+    /// True when the visibility was traced from this leaf (and is traced again for pieces
+    /// of the source).
+    traced: bool,
+}
+
 /// The leaves' gather lists: for each leaf, its own links as they are, and for every link
-/// `a ← s` of an ancestor `a`, the leaf's own unoccluded factor to `s` times the link's
-/// visibility: the link's when it is wholly visible, the leaf's own, traced, when the link
-/// is partly visible; see [`solve`]. `budget` sets the
-/// absolute tolerance of each factor as in [`factor_tolerances`]. Returns the lists and the
-/// point-factor evaluations spent.
-fn gather_lists(
+/// `a ← s` of an ancestor `a`, the leaf's own unoccluded factor to `s` times a visible
+/// fraction: the link's when it is wholly visible, the leaf's own, traced, when the link
+/// is partly visible or the leaf partly buried; see [`solve`].
+///
+/// **Sources as fine as they are.** An entry takes the source's mean radiosity; where the
+/// source was split (for other links) and its radiosity varies, that mean is biased for a
+/// leaf that sees one part of the source more than another (the ceiling above the bright
+/// middle of a floor). An entry whose source-side error `ρ_l F_ls ΔB_s` is above
+/// `descend × eps` is therefore replaced by entries to the source's children, each with the
+/// leaf's own factor, down to where the error is below it or the source is a leaf.
+///
+/// Factors are integrated to `accuracy × eps / (ρ_l B_s)` (as in [`tolerances`]). Returns
+/// the lists and the work spent.
+pub fn gather_lists(
     ctx: &Context,
     links: &[Vec<Link>],
     rho: &[[f64; 3]],
-    b: &[[f64; 3]],
-    budget: f64,
+    state: &State,
+    eps: f64,
+    accuracy: f64,
+    descend: f64,
 ) -> (Gather, Cost) {
     let e = ctx.elements;
+    let (b, spread) = (&state.b, &state.spread);
     let leaves: Vec<u32> = e.leaves().collect();
+    let n = (ctx.rays * ctx.rays) as f64;
     // Per leaf: (source, factor, error bar) entries and the work spent.
     type Entries = (Vec<(u32, f64, f64)>, Cost);
     let per_leaf: Vec<Entries> = leaves
         .par_iter()
         .map(|&l| {
+            let li = l as usize;
             let mut out: Vec<(u32, f64, f64)> = Vec::new();
             let mut cost = Cost::default();
-            if e.buried[l as usize] {
+            if e.buried[li] {
                 return (out, cost);
             }
-            out.extend(links[l as usize].iter().map(|k| (k.src, k.f, k.err)));
-            let n = (ctx.rays * ctx.rays) as f64;
-            let mut a = e.parent[l as usize];
+            let weight = |src: u32, x: &[[f64; 3]]| {
+                (0..3)
+                    .map(|c| rho[li][c] * x[src as usize][c])
+                    .fold(0.0, f64::max)
+            };
+            let f_tol = |src: u32| {
+                let w = weight(src, b);
+                if w > 0.0 {
+                    accuracy * eps / w
+                } else {
+                    f64::INFINITY
+                }
+            };
+            // The leaf's factor to `src` with its visibility: given, checked (a link found
+            // visible from an ancestor, confirmed by `CHECK_RAYS²` rays from the leaf,
+            // else traced), or traced.
+            let piece = |src: u32, v: Sight, cost: &mut Cost| -> Option<Entry> {
+                let t = f_tol(src);
+                let (f, evals) = link::open_factor(ctx, l, src, t);
+                cost.evals += evals;
+                if f <= 0.0 {
+                    return None;
+                }
+                let trace = |cost: &mut Cost| {
+                    let seen = link::visible_fraction(ctx, l, src);
+                    cost.rays += seen.rays;
+                    (seen.v, (seen.v * (1.0 - seen.v) / n).sqrt(), true)
+                };
+                let (v, v_bar, traced) = match v {
+                    Sight::Given(v, bar) => (v, bar, false),
+                    Sight::Trace => trace(cost),
+                    Sight::Check(v, bar) => {
+                        let seen = link::visible_fraction_n(ctx, l, src, CHECK_RAYS);
+                        cost.rays += seen.rays;
+                        if seen.v >= 1.0 {
+                            (v, bar, false)
+                        } else {
+                            trace(cost)
+                        }
+                    }
+                };
+                (v > 0.0).then_some(Entry {
+                    src,
+                    f: f * v,
+                    v,
+                    v_bar,
+                    q_bar: t.min(ctx.quadrature * f),
+                    traced,
+                })
+            };
+            let mut stack: Vec<Entry> = links[li]
+                .iter()
+                .filter(|k| k.f > 0.0)
+                .map(|k| Entry {
+                    src: k.src,
+                    f: k.f,
+                    v: k.vis,
+                    // The link's bar holds both parts.
+                    v_bar: 0.0,
+                    q_bar: k.err,
+                    traced: k.partial,
+                })
+                .collect();
+            let mut a = e.parent[li];
             while a != element::NONE {
                 for k in &links[a as usize] {
-                    let w = (0..3)
-                        .map(|c| rho[l as usize][c] * b[k.src as usize][c])
-                        .fold(0.0, f64::max);
-                    let f_tol = if w > 0.0 { budget / w } else { f64::INFINITY };
-                    let (f, evals) = link::open_factor(ctx, l, k.src, f_tol);
-                    cost.evals += evals;
-                    if f <= 0.0 {
-                        continue;
-                    }
                     // A partly visible link says nothing of where in `a` its shadow falls:
                     // the leaf's own visible fraction is traced (streams keyed on the leaf
-                    // and the source, as for a link).
-                    let (v, bar) = if k.partial {
-                        let (v, rays) = link::visible_fraction(ctx, l, k.src);
-                        cost.rays += rays;
-                        (v, (v * (1.0 - v) / n).sqrt())
+                    // and the source, as for a link). Nor does a link that rays found
+                    // visible from `a` prove that the leaf sees all of `s` (a leaf beside a
+                    // box sees less of the wall behind it than its parent): unless the
+                    // blockers' proof holds for the leaf itself, it traces its own too
+                    // (always for a partly buried leaf; otherwise where the proof can be
+                    // attempted at all, see `Blockers::provable`).
+                    let bar = if k.f > 0.0 { k.err / k.f } else { 0.0 };
+                    let v = if k.partial {
+                        Sight::Trace
+                    } else if (e.partly[li] || ctx.blockers.provable())
+                        && !ctx.blockers.unoccluded(
+                            e.corners(l),
+                            e.root[li],
+                            e.corners(k.src),
+                            e.root[k.src as usize],
+                        )
+                    {
+                        Sight::Check(k.vis, bar)
                     } else {
-                        (k.vis, if k.f > 0.0 { k.err / k.f } else { 0.0 })
+                        Sight::Given(k.vis, bar)
                     };
-                    if v > 0.0 {
-                        out.push((k.src, f * v, f * bar + f_tol.min(ctx.quadrature * f)));
+                    if let Some(en) = piece(k.src, v, &mut cost) {
+                        stack.push(en);
                     }
                 }
                 a = e.parent[a as usize];
+            }
+            // Sources as fine as they are, where their radiosity varies.
+            while let Some(en) = stack.pop() {
+                let s = en.src;
+                if e.is_leaf(s) || weight(s, spread) * en.f <= descend * eps {
+                    out.push((s, en.f, en.f * en.v_bar + en.q_bar));
+                    continue;
+                }
+                for c in e.children(s) {
+                    if ctx.visible[c as usize] <= 0.0 {
+                        continue;
+                    }
+                    let v = if en.traced {
+                        Sight::Trace
+                    } else {
+                        Sight::Given(en.v, en.v_bar)
+                    };
+                    if let Some(child) = piece(c, v, &mut cost) {
+                        stack.push(child);
+                    }
+                }
             }
             (out, cost)
         })
@@ -659,7 +823,7 @@ fn refine_links(
         }
         let ctx = Context::new(e, patches, vis, blockers, s, tol);
         let (rho, _) = materials(e, &material);
-        let tols = factor_tolerances(&specs, &rho, &state.b, s.accuracy * eps);
+        let tols = tolerances(&specs, &rho, &state.b, eps, s, eps / s.error);
         let cost = evaluate_into(&ctx, &specs, &tols, links);
         report.rays += cost.rays;
         report.evals += cost.evals;

@@ -201,10 +201,12 @@ pub fn split_along_contacts(
         stack.clear();
         stack.push(root);
         while let Some(el) = stack.pop() {
+            let crossed = segs.iter().any(|&s| crosses(e, el, s, tol));
             if e.area[el as usize] / 4.0 < min_area {
+                e.partly[el as usize] |= crossed && e.is_leaf(el);
                 continue;
             }
-            if segs.iter().any(|&s| crosses(e, el, s, tol)) {
+            if crossed {
                 let kids = e.split(el);
                 splits += 1;
                 // Reverse, so that children are visited in order.
@@ -221,7 +223,8 @@ pub const BURY_RAYS: usize = 16;
 /// Marks as buried each leaf of `leaves` from which all of [`BURY_RAYS`] rays (jittered
 /// points, cosine-weighted directions) meet the back of a patch: its whole surface lies
 /// inside a closed solid. A ray that escapes or meets a front side proves the leaf is
-/// surface. Returns the number buried and the rays cast.
+/// surface; when some rays do and others meet a back side, the leaf is marked *partly*
+/// buried ([`Elements::partly`]). Returns the number buried and the rays cast.
 pub fn bury(
     e: &mut Elements,
     leaves: &[u32],
@@ -229,28 +232,33 @@ pub fn bury(
     normals: &[DVec3],
     seed: u64,
 ) -> (usize, u64) {
-    let flags: Vec<bool> = leaves
+    let flags: Vec<(bool, bool)> = leaves
         .par_iter()
         .map(|&el| {
             let mut rng = Pcg32::keyed(seed, 0x4255_5259, u64::from(el), 0);
             let n = e.normal[el as usize];
             let (t, b) = basis(n.as_vec3());
             let (t, b) = (t.as_dvec3(), b.as_dvec3());
-            (0..BURY_RAYS).all(|_| {
-                let (x, _) = e.point(el, rng.next_f64(), rng.next_f64());
-                let d = cosine_direction(rng.next_f64(), rng.next_f64()).as_dvec3();
-                let dir = (t * d.x + b * d.y + n * d.z).normalize();
-                match vis.first_hit(x, n, dir) {
-                    Some(h) => normals[h.patch as usize].dot(dir) > 0.0,
-                    None => false,
-                }
-            })
+            let back = (0..BURY_RAYS)
+                .filter(|_| {
+                    let (x, _) = e.point(el, rng.next_f64(), rng.next_f64());
+                    let d = cosine_direction(rng.next_f64(), rng.next_f64()).as_dvec3();
+                    let dir = (t * d.x + b * d.y + n * d.z).normalize();
+                    match vis.first_hit(x, n, dir) {
+                        Some(h) => normals[h.patch as usize].dot(dir) > 0.0,
+                        None => false,
+                    }
+                })
+                .count();
+            (back == BURY_RAYS, back > 0 && back < BURY_RAYS)
         })
         .collect();
     let mut count = 0;
-    for (&el, &f) in leaves.iter().zip(&flags) {
-        e.buried[el as usize] = f;
-        count += usize::from(f);
+    for (&el, &(all, some)) in leaves.iter().zip(&flags) {
+        let i = el as usize;
+        e.buried[i] = all;
+        e.partly[i] = !all && (some || e.partly[i]);
+        count += usize::from(all);
     }
     (count, (leaves.len() * BURY_RAYS) as u64)
 }

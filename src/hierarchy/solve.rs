@@ -140,7 +140,6 @@ pub fn solve(
             }
             state.b[l] = b;
             state.h[l] = h;
-            state.spread[l] = [0.0; 3];
         }
         pull(e, &vis, state);
         stats = iteration_stats(it, change, tol);
@@ -152,9 +151,9 @@ pub fn solve(
 }
 
 /// HSA's own iteration, for the passes before the last (cheaper: no gather lists): each
-/// element gathers over its own links, irradiance is pushed down unchanged (spread over
-/// the visible area, `A_p / A_vis,p`), leaves get `B = E + ρ H`, then pull. Same
-/// stopping rule as [`solve`].
+/// element gathers over its own links (whose factors are per visible area, so the
+/// irradiance is that of the element's unburied part), irradiance is pushed down
+/// unchanged, leaves get `B = E + ρ H`, then pull. Same stopping rule as [`solve`].
 pub fn solve_push(
     e: &Elements,
     links: &[Vec<super::link::Link>],
@@ -166,15 +165,6 @@ pub fn solve_push(
 ) -> SolveStats {
     let n = e.len();
     let vis = e.visible_areas();
-    let scale: Vec<f64> = (0..n)
-        .map(|k| {
-            if vis[k] > 0.0 {
-                e.area[k] / vis[k]
-            } else {
-                0.0
-            }
-        })
-        .collect();
     if state.b.len() != n {
         state.b.resize(n, [0.0; 3]);
         state.spread.resize(n, [0.0; 3]);
@@ -194,7 +184,7 @@ pub fn solve_push(
                     s[c] += l.f * bs[c];
                 }
             }
-            *g = s.map(|v| v * scale[p]);
+            *g = s;
         });
         // 2. Push (parents first) and leaf radiosity.
         let mut change = 0.0f64;
@@ -218,7 +208,6 @@ pub fn solve_push(
                 }
                 state.b[p] = new;
                 state.h[p] = if e.buried[p] { [0.0; 3] } else { h };
-                state.spread[p] = [0.0; 3];
             }
         }
         // 3. Pull (children first).
@@ -250,15 +239,18 @@ fn iteration_stats(it: usize, change: f64, tol: f64) -> SolveStats {
 }
 
 /// Sets every parent's radiosity to the visible-area average of its children, and its
-/// spread to the range of the leaves below it.
+/// spread to the range covered by the leaves below it, each leaf standing for the interval
+/// `B ± spread / 2` (its own estimated variation, [`estimate_spread`]).
 pub fn pull(e: &Elements, vis: &[f64], state: &mut State) {
     let mut lo = vec![[f64::INFINITY; 3]; e.len()];
     let mut hi = vec![[f64::NEG_INFINITY; 3]; e.len()];
     for p in (0..e.len()).rev() {
         if e.first_child[p] == NONE {
             if !e.buried[p] {
-                lo[p] = state.b[p];
-                hi[p] = state.b[p];
+                for k in 0..3 {
+                    lo[p][k] = state.b[p][k] - 0.5 * state.spread[p][k];
+                    hi[p][k] = state.b[p][k] + 0.5 * state.spread[p][k];
+                }
             }
             continue;
         }
@@ -278,6 +270,51 @@ pub fn pull(e: &Elements, vis: &[f64], state: &mut State) {
         };
         state.spread[p] = std::array::from_fn(|k| (hi[p][k] - lo[p][k]).max(0.0));
     }
+}
+
+/// Estimates how much radiosity varies over each leaf, for the oracle's source term, then
+/// pulls the spreads up the tree. A leaf's radiosity is one number; what it stands for
+/// varies by about `ρ_l Σ ΔF_k B_k` over it, the sum over the links into the leaf and its
+/// ancestors of each link's factor variation times its source's radiosity, a link into an
+/// ancestor `a` counting `√(A_l / A_a)` of its variation (a variation linear across `a`).
+/// Without it a source that was never split would look uniform however its radiosity
+/// varies, and a receiver that sees more of the bright part of a source than of its dark
+/// part (the middle of a floor lit from above, seen from the ceiling) would be
+/// systematically under-lit.
+pub fn estimate_spread(
+    e: &Elements,
+    links: &[Vec<super::link::Link>],
+    rho: &[[f64; 3]],
+    state: &mut State,
+) {
+    let leaves: Vec<u32> = e.leaves().collect();
+    let b = &state.b;
+    let spread: Vec<[f64; 3]> = leaves
+        .par_iter()
+        .map(|&l| {
+            let li = l as usize;
+            if e.buried[li] {
+                return [0.0; 3];
+            }
+            let mut sum = [0.0; 3];
+            let mut a = l;
+            while a != NONE {
+                let scale = (e.area[li] / e.area[a as usize]).sqrt();
+                for k in &links[a as usize] {
+                    let bs = b[k.src as usize];
+                    for c in 0..3 {
+                        sum[c] += scale * k.df * bs[c];
+                    }
+                }
+                a = e.parent[a as usize];
+            }
+            std::array::from_fn(|c| rho[li][c] * sum[c])
+        })
+        .collect();
+    for (&l, s) in leaves.iter().zip(spread) {
+        state.spread[l as usize] = s;
+    }
+    pull(e, &e.visible_areas(), state);
 }
 
 /// Power balance of a solved hierarchy: `(emitted, absorbed)`, each `Σ A_vis (·)` over

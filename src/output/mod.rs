@@ -31,7 +31,7 @@ pub use self::exr::{read_exr, write_exr, ExrBake};
 pub use self::folder::{check_folder, write_folder, FolderKind, Manifest};
 pub use self::ply::write_ply;
 pub use self::preview::{render_preview, write_png, Exposure, Image};
-pub use self::vertex::{interpolate, VertexRadiosity, DEFAULT_CREASE_DEG};
+pub use self::vertex::{interpolate, interpolate_with, Nodal, VertexRadiosity, DEFAULT_CREASE_DEG};
 
 use crate::error::{Error, Result};
 

@@ -25,7 +25,7 @@ use crate::error::{Error, Result};
 use crate::hierarchy::{self, leaves::leaf_mesh};
 use crate::mesh::{PatchSet, Resolution};
 use crate::output::chart::{chart, Mark, Series, Spec};
-use crate::output::{interpolate, write_atomic, VertexRadiosity};
+use crate::output::{interpolate, interpolate_with, write_atomic, Nodal, VertexRadiosity};
 use crate::pipeline::{self, Quiet};
 use crate::scene::Scene;
 use crate::solve::{Method, Options};
@@ -348,7 +348,7 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
         };
         let sol = hierarchy::run(&patches, &vis, &settings, &|_| {})?;
         let (leaves, b, ids) = leaf_mesh(&sol.elements, &patches, &sol.state.b);
-        let verts = interpolate(&leaves, &b, 30.0);
+        let verts = interpolate_with(&leaves, &b, 30.0, Nodal::Linear);
         let (cpu, wall) = (cpu_seconds() - c0, t0.elapsed().as_secs_f64());
         let areas: Vec<f64> = ids.iter().map(|&l| sol.elements.area[l as usize]).collect();
         let (face_max, points, values) = score(
