@@ -620,7 +620,7 @@ mod tests {
     fn polygons_keep_their_area_and_bad_ones_name_their_line() {
         // The L-shaped floor as Blender writes it, from a corner that a fan from corner 1
         // would wrap around the notch (16 m^2 of overlapping triangles instead of 7).
-        let obj = "v 4 0 0\nv 4 0 1\nv 1 0 1\nv 1 0 4\nv 0 0 4\nv 0 0 0\nf 6 5 4 3 2 1\n";
+        let obj = "v 4 0 0\nv 4 0 1\nv 1 0 1\nv 1 0 4\nv 0 0 4\nv 0 0 0\nf 1 6 5 4 3 2\n";
         let s = parse("t", Path::new("t.obj"), obj, &no_mtl).unwrap();
         let area: f64 = s
             .faces
