@@ -317,9 +317,15 @@ struct BakeArgs {
     /// Radiosity solver.
     #[arg(long, value_enum, default_value_t = Method::GaussSeidel)]
     solver: Method,
-    /// Relative residual at which the solver stops.
+    /// Relative residual at which the solver stops; every patch must also be converged to
+    /// it, relative to its own radiosity (see --floor).
     #[arg(long, default_value_t = 1e-6)]
     tolerance: f64,
+    /// Absolute floor of the per-patch stopping rule (radiosity units): a patch dimmer than
+    /// this is converged to `tolerance * floor` instead of to its own value. Default: 1e-12
+    /// times the largest emission of each channel.
+    #[arg(long)]
+    floor: Option<f64>,
     /// Iteration cap of the solver: sweeps (jacobi, gauss-seidel), iterations (cg); for
     /// progressive, this times the patch count shots (n shots cost about one sweep).
     #[arg(long, default_value_t = 10_000)]
@@ -433,6 +439,11 @@ fn bake(args: &BakeArgs) -> Result<()> {
     if !(args.tolerance > 0.0 && args.tolerance < 1.0) {
         bail!("--tolerance must be in (0, 1), got {}", args.tolerance);
     }
+    if let Some(f) = args.floor {
+        if !(f.is_finite() && f >= 0.0) {
+            bail!("--floor must be a finite number >= 0, got {f}");
+        }
+    }
     let hierarchy = match args.hier.method {
         MethodArg::Flat => None,
         MethodArg::Hierarchical => {
@@ -481,6 +492,7 @@ fn bake(args: &BakeArgs) -> Result<()> {
             tolerance: args.tolerance,
             max_iterations: args.max_iterations,
             keep_partial: args.keep_partial,
+            floor: args.floor,
         },
         preview: parse_size(&args.size)?,
         exposure: parse_exposure(&args.exposure)?,

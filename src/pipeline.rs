@@ -569,6 +569,7 @@ fn bake_hierarchical(
         solver: "hierarchical (gather, push-pull)".into(),
         iterations: r.passes.iter().map(|p| p.solve.iterations).sum(),
         residual: last.solve.change,
+        patch_residual: last.solve.change,
         history: Vec::new(),
         seconds: r.passes.iter().map(|p| p.solve_seconds).sum(),
         converged: last.solve.converged,
@@ -734,10 +735,11 @@ pub fn format_summary(s: &BakeSummary) -> String {
     }
     let _ = writeln!(
         o,
-        "solve: {} in {} iterations, relative residual {:.2e}{}",
+        "solve: {} in {} iterations, relative residual {:.2e}, worst patch {:.2e}{}",
         s.solve.solver,
         s.solve.iterations,
         s.solve.residual,
+        s.solve.patch_residual,
         if s.solve.converged {
             ""
         } else {

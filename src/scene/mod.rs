@@ -1,13 +1,15 @@
 //! Scenes: polygons with diffuse materials, as loaded from OBJ/MTL or built in.
 //!
 //! A [`Scene`] is what the user described, cleaned: planar convex polygons of 3 or 4
-//! vertices (larger or non-planar polygons are split into triangles), each with a
+//! vertices (any other simple polygon is meshed as written into triangles covering exactly
+//! its area, well shaped for the patch mesher: see [`polygon`]), each with a
 //! [`Material`] holding the RGB reflectance `rho` (MTL `Kd`, each channel in [0, 1)) and the
 //! RGB emission `emit` (MTL `Ke`, exitance units, >= 0). Nothing here knows about patches
 //! or rays: the `mesh` module turns a scene into patches.
 
 pub mod builtin;
 pub mod obj;
+pub mod polygon;
 
 use glam::{DVec3, Vec3};
 
@@ -65,7 +67,8 @@ impl Material {
     }
 }
 
-/// A planar convex polygon of the scene (3 or 4 corners).
+/// A planar convex polygon of the scene (3 or 4 corners): an input face, or one triangle
+/// of an input polygon meshed by [`polygon::mesh`] (all its triangles keep its line).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Face {
     /// Indices into [`Scene::positions`]; the 4th is [`Face::NONE`] for a triangle.

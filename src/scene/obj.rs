@@ -6,9 +6,12 @@
 //!   rejects the file, the failing line is found by parsing prefixes);
 //! - its own MTL reader (`newmtl`, `Kd` = reflectance rho, `Ke` = emitted exitance E), so
 //!   a value out of range is reported with its line;
-//! - cleaning: repeated corners removed, degenerate faces dropped (with a warning naming the
-//!   line), markedly non-planar (> 1% of the diagonal) or non-convex quads and larger
-//!   polygons split into triangles.
+//! - cleaning: repeated corners removed, degenerate (zero-area) faces dropped with a
+//!   warning naming the line; triangles and planar convex quads kept as they are; every
+//!   other polygon (concave, more than 4 corners, or non-planar beyond 1% of its size)
+//!   meshed as written by [`super::polygon`]: its exact area in well-shaped triangles, a
+//!   non-planar one split along its best diagonals with a warning naming the file and line,
+//!   one that is not simple (self-intersecting, touching itself) refused with its line.
 //!
 //! A comment line `#@camera eye X Y Z target X Y Z up X Y Z fov DEGREES` sets the
 //! preview camera.
@@ -19,6 +22,7 @@ use std::path::{Path, PathBuf};
 
 use glam::{DVec3, Vec3};
 
+use super::polygon::{self, newell};
 use super::{Camera, Face, Material, Scene};
 use crate::error::{Error, Result};
 use crate::input::{read_text, MAX_TEXT_BYTES};
@@ -161,7 +165,7 @@ pub fn parse(
                     (scene.materials.len() - 1) as u32
                 }),
             };
-            add_polygon(&mut scene, &idx, material, line);
+            add_polygon(&mut scene, path, &idx, material, line)?;
         }
     }
     if scene.faces.is_empty() {
@@ -421,30 +425,30 @@ fn run_tobj(path: &Path, text: &str) -> Result<Vec<tobj::Model>> {
     }
 }
 
-/// Newell normal (length = twice the area) of a polygon.
-fn newell(p: &[DVec3]) -> DVec3 {
-    let mut n = DVec3::ZERO;
-    for k in 0..p.len() {
-        let (a, b) = (p[k], p[(k + 1) % p.len()]);
-        n += DVec3::new(
-            (a.y - b.y) * (a.z + b.z),
-            (a.z - b.z) * (a.x + b.x),
-            (a.x - b.x) * (a.y + b.y),
-        );
-    }
-    n
-}
-
-/// Adds a polygon as cleaned faces: repeated corners removed, degenerate ones dropped,
-/// planar convex quads kept, anything else split into triangles.
-fn add_polygon(scene: &mut Scene, idx: &[u32], material: u32, line: usize) {
+/// Adds a polygon as cleaned faces: repeated corners removed, zero-area polygons dropped
+/// with a warning, triangles and planar convex quads kept, anything else meshed by
+/// [`polygon::mesh`] (a non-planar one with a warning naming the file and line; one that
+/// is not simple refused with an error naming them).
+fn add_polygon(
+    scene: &mut Scene,
+    path: &Path,
+    idx: &[u32],
+    material: u32,
+    line: usize,
+) -> Result<()> {
     let mut corners: Vec<u32> = Vec::with_capacity(idx.len());
     for &i in idx {
-        if corners.last() != Some(&i) {
+        let same = |c: Option<&u32>| {
+            c.is_some_and(|&c| c == i || scene.positions[c as usize] == scene.positions[i as usize])
+        };
+        if !same(corners.last()) {
             corners.push(i);
         }
     }
-    while corners.len() > 1 && corners.first() == corners.last() {
+    while corners.len() > 1
+        && scene.positions[corners[0] as usize]
+            == scene.positions[*corners.last().unwrap_or(&0) as usize]
+    {
         corners.pop();
     }
     let pts: Vec<DVec3> = corners
@@ -456,11 +460,22 @@ fn add_polygon(scene: &mut Scene, idx: &[u32], material: u32, line: usize) {
         .flat_map(|a| pts.iter().map(move |b| (*a - *b).length_squared()))
         .fold(0.0, f64::max);
     let n = newell(&pts);
+    if corners.len() >= 4 && n.length() <= 1e-10 * scale && !polygon::collinear(&pts) {
+        return Err(Error::Parse {
+            path: path.to_path_buf(),
+            line: Some(line),
+            msg: format!(
+                "face of {} corners: its signed area is zero but its corners are not on one \
+                 line, so its edges cross: it is self-intersecting, not a simple polygon",
+                corners.len()
+            ),
+        });
+    }
     if corners.len() < 3 || n.length() <= 1e-10 * scale || scale == 0.0 {
         scene.warnings.push(format!(
             "dropped a degenerate face (zero area) at line {line}"
         ));
-        return;
+        return Ok(());
     }
     let unit = n.normalize();
     // Quads a little out of plane (the published Cornell walls are, by a few mm in 550)
@@ -468,7 +483,7 @@ fn add_polygon(scene: &mut Scene, idx: &[u32], material: u32, line: usize) {
     // order. Beyond 1% of the diagonal the quad is split and the user told.
     let planar = pts
         .iter()
-        .all(|p| (*p - pts[0]).dot(unit).abs() <= 1e-2 * scale.sqrt());
+        .all(|p| (*p - pts[0]).dot(unit).abs() <= polygon::PLANARITY * scale.sqrt());
     let convex = (0..pts.len()).all(|k| {
         let (a, b, c) = (pts[k], pts[(k + 1) % pts.len()], pts[(k + 2) % pts.len()]);
         (b - a).cross(c - b).dot(unit) > 0.0
@@ -483,21 +498,35 @@ fn add_polygon(scene: &mut Scene, idx: &[u32], material: u32, line: usize) {
     match corners.len() {
         3 => push(scene, [corners[0], corners[1], corners[2], Face::NONE]),
         4 if planar && convex => push(scene, [corners[0], corners[1], corners[2], corners[3]]),
-        _ => {
-            if !planar {
-                scene
-                    .warnings
-                    .push(format!("split a non-planar polygon at line {line}"));
+        len => {
+            let meshed = polygon::mesh(&pts).map_err(|msg| Error::Parse {
+                path: path.to_path_buf(),
+                line: Some(line),
+                msg: format!("face of {len} corners: {msg}"),
+            })?;
+            if let Some(dev) = meshed.non_planar {
+                scene.warnings.push(format!(
+                    "{}:{line}: split a non-planar face of {len} corners (a corner {:.1}% of \
+                     its size from its best-fit plane) along its best diagonals",
+                    path.display(),
+                    100.0 * dev
+                ));
             }
-            // Fan from corner 0; drop slivers that come out degenerate.
-            for k in 1..corners.len() - 1 {
-                let tri = [pts[0], pts[k], pts[k + 1]];
-                if newell(&tri).length() > 1e-10 * scale {
-                    push(scene, [corners[0], corners[k], corners[k + 1], Face::NONE]);
+            let base = scene.positions.len() as u32;
+            scene.positions.extend_from_slice(&meshed.extra);
+            let index = |k: usize| {
+                if k < len {
+                    corners[k]
+                } else {
+                    base + (k - len) as u32
                 }
+            };
+            for t in &meshed.triangles {
+                push(scene, [index(t[0]), index(t[1]), index(t[2]), Face::NONE]);
             }
         }
     }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -576,5 +605,56 @@ mod tests {
         let s = parse("t", Path::new("t.obj"), obj, &no_mtl).unwrap();
         assert_eq!(s.faces.len(), 2);
         assert!(s.faces.iter().all(|f| f.len() == 3));
+        let area: f64 = s
+            .faces
+            .iter()
+            .map(|f| {
+                let p = f.corner_slice().iter().map(|&c| s.positions[c as usize]);
+                0.5 * newell(&p.collect::<Vec<_>>()).length()
+            })
+            .sum();
+        assert!((area - 1.0).abs() < 1e-15, "{area}");
+    }
+
+    #[test]
+    fn polygons_keep_their_area_and_bad_ones_name_their_line() {
+        // The L-shaped floor as Blender writes it, from a corner that a fan from corner 1
+        // would wrap around the notch (16 m^2 of overlapping triangles instead of 7).
+        let obj = "v 4 0 0\nv 4 0 1\nv 1 0 1\nv 1 0 4\nv 0 0 4\nv 0 0 0\nf 1 6 5 4 3 2\n";
+        let s = parse("t", Path::new("t.obj"), obj, &no_mtl).unwrap();
+        let area: f64 = s
+            .faces
+            .iter()
+            .map(|f| {
+                let p: Vec<DVec3> = f
+                    .corner_slice()
+                    .iter()
+                    .map(|&c| s.positions[c as usize])
+                    .collect();
+                let n = newell(&p);
+                assert!(n.y > 0.0, "faces keep the polygon's orientation");
+                0.5 * n.length()
+            })
+            .sum();
+        assert_eq!(area, 7.0);
+        assert!(s.faces.iter().all(|f| f.line == 7));
+        let bad = "v 0 0 0\nv 4 1 0\nv 4 0 0\nv 0 3 0\n\nf 1 2 3 4\n";
+        let e = parse("t", Path::new("t.obj"), bad, &no_mtl)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("t.obj:6") && e.contains("self-intersecting"),
+            "{e}"
+        );
+        let lifted = "v 0 0 0\nv 4 0 0\nv 4 1 0.5\nv 0 1 0\nf 1 2 3 4\n";
+        let s = parse("t", Path::new("t.obj"), lifted, &no_mtl).unwrap();
+        assert_eq!(s.faces.len(), 2);
+        assert!(
+            s.warnings
+                .iter()
+                .any(|w| w.contains("t.obj:5") && w.contains("non-planar")),
+            "{:?}",
+            s.warnings
+        );
     }
 }

@@ -34,7 +34,8 @@
 //! Every iteration computes the exact residual of the original system with the same
 //! definition as the other solvers (see the [module docs](super)), so an iteration costs two
 //! passes over the matrix (one over `S`, one over `F`). All three channels run in lockstep,
-//! each with its own CG scalars; a channel stops updating once it is within tolerance.
+//! each with its own CG scalars; a channel stops updating once it is within tolerance, by
+//! the relative residual and by the per-patch rule (measured from the same true residual).
 //! If `p^T M_s p <= 0` the symmetric form is not positive definite (rows of `F` summing above
 //! `1 / rho`): the run stops with [`Error::Singular`].
 
@@ -42,8 +43,8 @@ use crate::matrix::{Csr, Triplets};
 use rayon::prelude::*;
 
 use super::{
-    divergence, diverging, finish, gather, Options, Outcome, Prologue, Rows, SolveReport, Solver,
-    System,
+    divergence, diverging, finish, gather, max3, worst, Options, Outcome, Prologue, Rows,
+    SolveReport, Solver, System,
 };
 use crate::error::{Error, Result};
 
@@ -126,9 +127,18 @@ impl Solver for Cg {
             start,
             rows,
             scale,
+            floor,
             gain,
             mut notes,
         } = Prologue::new(sys, opts)?;
+        // The per-patch measure of the rule, per channel, from the true residual `t`.
+        let per_patch = |t: &[[f64; 3]], b: &[[f64; 3]]| -> [f64; 3] {
+            t.par_iter()
+                .zip(b)
+                .enumerate()
+                .map(|(i, (ti, bi))| floor.of_residual(sys, i, *ti, *bi))
+                .reduce(|| [0.0; 3], max3)
+        };
         let n = sys.len();
         let (s, asym) = symmetrise(sys.f, sys.area);
         let srows = Rows::new(&s);
@@ -146,6 +156,7 @@ impl Solver for Cg {
         let mut b = sys.emit.to_vec();
         let mut t = true_residual(sys, &rows, &b);
         let mut abs = inf_norm(&t);
+        let mut pp = per_patch(&t, &b);
         let mut history = vec![scale.rel(abs)];
         let mut iterations = 0;
         let mut restarts = 0;
@@ -173,11 +184,13 @@ impl Solver for Cg {
                 if diverging(res) {
                     return Err(divergence(NAME, iterations, res, opts, &gain));
                 }
-                if res <= opts.tolerance || iterations >= opts.max_iterations {
+                let done = res <= opts.tolerance && worst(pp) <= opts.tolerance;
+                if done || iterations >= opts.max_iterations {
                     break 'outer;
                 }
-                let active: [bool; 3] =
-                    [0, 1, 2].map(|c| abs[c] / scale.0[c] > opts.tolerance && rz[c] > 0.0);
+                let active: [bool; 3] = [0, 1, 2].map(|c| {
+                    (abs[c] / scale.0[c] > opts.tolerance || pp[c] > opts.tolerance) && rz[c] > 0.0
+                });
                 // q = M_s p on free patches.
                 let q: Vec<[f64; 3]> = (0..n)
                     .into_par_iter()
@@ -234,6 +247,7 @@ impl Solver for Cg {
                 iterations += 1;
                 t = true_residual(sys, &rows, &b);
                 abs = inf_norm(&t);
+                pp = per_patch(&t, &b);
                 history.push(scale.rel(abs));
                 if !reciprocal {
                     let rn = dot(&r, &r).map(f64::sqrt);
@@ -299,6 +313,7 @@ impl Solver for Cg {
             b,
             iterations,
             residual,
+            patch_residual: worst(pp),
             history,
             notes,
         };

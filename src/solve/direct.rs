@@ -32,7 +32,7 @@ use faer::linalg::lu::partial_pivoting::{factor, solve as lu_solve};
 use faer::Mat;
 
 use super::{
-    abs_residual, finish, Gain, Options, Outcome, Prologue, Rows, SolveReport, Solver, System,
+    finish, measure, worst, Gain, Options, Outcome, Prologue, Rows, SolveReport, Solver, System,
 };
 use crate::error::{Error, Result};
 
@@ -169,6 +169,7 @@ impl Solver for Direct {
             start,
             rows,
             scale,
+            floor,
             gain,
             notes,
         } = Prologue::new(sys, opts)?;
@@ -188,12 +189,15 @@ impl Solver for Direct {
             .map(|(c, members)| factorise(sys, &rows, c, members))
             .collect::<Result<Vec<_>>>()?;
         let mut b = sys.emit.to_vec();
-        let mut history = vec![scale.rel(abs_residual(sys, &rows, &b))];
+        let (abs, per_patch) = measure(sys, &rows, &b, &floor);
+        let mut history = vec![scale.rel(abs)];
+        let mut patch_residual = worst(per_patch);
         let mut iterations = 0;
         // The first solve is the refinement step from B = E: d = A^{-1} (E - A E).
         loop {
             let r = *history.last().unwrap_or(&0.0);
-            if r <= opts.tolerance || iterations > REFINEMENT_STEPS {
+            let done = r <= opts.tolerance && patch_residual <= opts.tolerance;
+            if done || iterations > REFINEMENT_STEPS {
                 break;
             }
             let mut d: Vec<[f64; 3]> = (0..n)
@@ -211,7 +215,9 @@ impl Solver for Direct {
                 }
             }
             iterations += 1;
-            history.push(scale.rel(abs_residual(sys, &rows, &b)));
+            let (abs, per_patch) = measure(sys, &rows, &b, &floor);
+            history.push(scale.rel(abs));
+            patch_residual = worst(per_patch);
         }
         check_physical(sys, &b, &gain)?;
         let residual = *history.last().unwrap_or(&0.0);
@@ -219,6 +225,7 @@ impl Solver for Direct {
             b,
             iterations,
             residual,
+            patch_residual,
             history,
             notes,
         };

@@ -16,10 +16,11 @@
 //!
 //! The same pass over a row also accumulates `sum_j F_ij B_j` with the values from before
 //! the sweep (kept in a copy), which gives the exact residual of the iterate the sweep
-//! starts from. As for [`Jacobi`](super::Jacobi), the solver returns the first iterate
-//! within tolerance with its exact residual.
+//! starts from, and its per-patch measure (see the [module docs](super)). As for
+//! [`Jacobi`](super::Jacobi), the solver returns the first iterate within tolerance by both
+//! with its exact residuals.
 
-use super::{sweep_loop, Options, SolveReport, Solver, System};
+use super::{max3, sweep_loop, Options, SolveReport, Solver, System};
 use crate::error::Result;
 
 pub(crate) const NAME: &str = "gauss-seidel";
@@ -34,9 +35,10 @@ impl Solver for GaussSeidel {
     }
 
     fn solve(&self, sys: &System, opts: &Options) -> Result<(Vec<[f64; 3]>, SolveReport)> {
-        sweep_loop(NAME, sys, opts, |rows, old, b| {
+        sweep_loop(NAME, sys, opts, |rows, floor, old, b| {
             b.copy_from_slice(old);
             let mut res = [0.0f64; 3];
+            let mut per_patch = [0.0f64; 3];
             for i in 0..rows.len() {
                 let (ind, val) = rows.row(i);
                 // `all`: F_i . old (for the residual of `old`); `off`: the sweep's sum over
@@ -57,17 +59,14 @@ impl Solver for GaussSeidel {
                     }
                 }
                 let (e, rho) = (sys.emit[i], sys.rho[i]);
+                let r = [0, 1, 2].map(|c| e[c] + rho[c] * all[c] - old[i][c]);
+                per_patch = max3(per_patch, floor.of_residual(sys, i, r, old[i]));
+                res = max3(res, r.map(f64::abs));
                 for c in 0..3 {
-                    let r = (e[c] + rho[c] * all[c] - old[i][c]).abs();
-                    res[c] = if r.is_nan() || res[c].is_nan() {
-                        f64::NAN
-                    } else {
-                        res[c].max(r)
-                    };
                     b[i][c] = (e[c] + rho[c] * off[c]) / (1.0 - rho[c] * fii);
                 }
             }
-            res
+            (res, per_patch)
         })
     }
 }

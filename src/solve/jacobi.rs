@@ -14,6 +14,8 @@
 //! The residual of `B^k` is `B^{k+1} - B^k`, so measuring it costs nothing: each pass over
 //! `F` both measures `B^k` and computes `B^{k+1}`, and the solver returns the first `B^k`
 //! within tolerance, with its exact residual (one pass more than the iterations reported).
+//! Within tolerance means both the relative residual and the per-patch rule of the [module
+//! docs](super), measured in the same pass.
 
 use super::{gather, max3, sweep_loop, Options, SolveReport, Solver, System};
 use crate::error::Result;
@@ -31,18 +33,18 @@ impl Solver for Jacobi {
     }
 
     fn solve(&self, sys: &System, opts: &Options) -> Result<(Vec<[f64; 3]>, SolveReport)> {
-        sweep_loop(NAME, sys, opts, |rows, b, next| {
+        sweep_loop(NAME, sys, opts, |rows, floor, b, next| {
             next.par_iter_mut()
                 .enumerate()
                 .map(|(i, out)| {
                     *out = gather(sys, rows, b, i);
-                    [
-                        (out[0] - b[i][0]).abs(),
-                        (out[1] - b[i][1]).abs(),
-                        (out[2] - b[i][2]).abs(),
-                    ]
+                    let r = [0, 1, 2].map(|c| out[c] - b[i][c]);
+                    (r.map(f64::abs), floor.of_residual(sys, i, r, b[i]))
                 })
-                .reduce(|| [0.0; 3], max3)
+                .reduce(
+                    || ([0.0; 3], [0.0; 3]),
+                    |x, y| (max3(x.0, y.0), max3(x.1, y.1)),
+                )
         })
     }
 }

@@ -34,8 +34,27 @@
 //! nothing is measured against the largest emission of any channel instead (its exact
 //! solution is zero, so a relative measure of its own would be undefined), and a system that
 //! emits nothing at all is measured in absolute terms. A non-finite `B` has residual `inf`.
-//! The solvers start from `B = E` and stop when `r(B) <= tolerance`; the report's `residual`
-//! is always `r` of the returned `B`, computed exactly.
+//! The solvers start from `B = E`; the report's `residual` is always `r` of the returned
+//! `B`, computed exactly.
+//!
+//! ## The stopping rule, per patch
+//! `r(B)` is relative to the brightest emission, so it says nothing about patches far
+//! dimmer than the light: in a scene with every reflectance at 0.001, surfaces lit at second
+//! order have `B ~ 1e-8 E`, and `r(B) = 1e-6` leaves them 90% low. So a solve stops only when
+//! every patch is converged too, by its own value:
+//!
+//! ```text
+//! p(B) = max over patches i and channels c of  |E_ic + rho_ic (F B_c)_i - B_ic| / max(|B_ic|, floor_c)
+//! ```
+//!
+//! and the run converges when `r(B) <= tolerance` and `p(B) <= tolerance` (reported as
+//! `patch_residual`). `floor_c` is [`Options::floor`] (absolute, radiosity units) or, by
+//! default, [`DEFAULT_FLOOR`] times `s_c`; it keeps patches that receive no light, or almost
+//! none, from asking for a relative accuracy that means nothing. A row whose residual is
+//! within 64 ulps of its own terms (`|E_i| + |rho_i (F B)_i| + |B_i|`) counts as converged:
+//! that residual is the rounding of its evaluation. With every `rho` and `F` non-negative
+//! the residual bounds the error of each patch about as it bounds the global one (the error
+//! is `(I - diag(rho) F)^-1` applied to the residual, a sum of non-negative terms).
 //!
 //! ## Failures
 //! - Invalid input (lengths, non-finite values, `rho` outside `[0, 1)`, a patch that would
@@ -231,6 +250,10 @@ pub struct Options {
     /// On reaching `max_iterations`, return the partial `B` with `converged: false` instead
     /// of [`Error::NotConverged`].
     pub keep_partial: bool,
+    /// Absolute floor of the per-patch rule (radiosity units): a patch is converged when its
+    /// residual is at most `tolerance * max(|B_i|, floor)`. `None`: [`DEFAULT_FLOOR`] times
+    /// the largest emission of the channel (see the [module docs](self)).
+    pub floor: Option<f64>,
 }
 
 impl Default for Options {
@@ -239,6 +262,7 @@ impl Default for Options {
             tolerance: 1e-6,
             max_iterations: 10_000,
             keep_partial: false,
+            floor: None,
         }
     }
 }
@@ -252,9 +276,26 @@ impl Options {
                 self.tolerance
             )));
         }
+        if let Some(f) = self.floor {
+            if !(f.is_finite() && f >= 0.0) {
+                return Err(Error::Config(format!(
+                    "solver floor {f} is not a finite non-negative number"
+                )));
+            }
+        }
         Ok(())
     }
 }
+
+/// Default floor of the per-patch rule, relative to the largest emission of each channel:
+/// a patch dimmer than this is converged to `tolerance * DEFAULT_FLOOR` of that emission
+/// rather than to its own value (light that weak is below anything an f32 output or an
+/// eye resolves next to the emitter).
+pub const DEFAULT_FLOOR: f64 = 1e-12;
+
+/// Residuals at most this many ulps of a row's own terms are rounding, not error: the
+/// per-patch rule counts them as converged.
+const ROUNDING_ULPS: f64 = 64.0;
 
 /// What a solver did.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -272,7 +313,11 @@ pub struct SolveReport {
     pub history: Vec<f64>,
     /// Wall-clock seconds.
     pub seconds: f64,
-    /// Whether `residual <= tolerance`.
+    /// The worst patch's relative residual: the largest over patches and channels of
+    /// `|E_i + rho_i (F B)_i - B_i| / max(|B_i|, floor)` (residuals at the rounding level of
+    /// their row count as 0; see the [module docs](self)).
+    pub patch_residual: f64,
+    /// Whether `residual <= tolerance` and `patch_residual <= tolerance`.
     pub converged: bool,
     /// Warnings found on the way (rows of `F` summing above 1, an early stop).
     pub notes: Vec<String>,
@@ -530,6 +575,91 @@ impl Scale {
     }
 }
 
+/// The per-patch part of the stopping rule (see the [module docs](self)).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Floor([f64; 3]);
+
+impl Floor {
+    /// The floor of `opts` per channel, or the default relative to `scale`.
+    pub(crate) fn new(opts: &Options, scale: &Scale) -> Floor {
+        Floor(match opts.floor {
+            Some(f) => [f; 3],
+            None => scale.0.map(|s| DEFAULT_FLOOR * s),
+        })
+    }
+
+    /// Relative residual of one row per channel: residual `r`, iterate `b`, and the
+    /// magnitude `terms` of what the row's evaluation summed (for the rounding allowance).
+    #[inline]
+    pub(crate) fn row(&self, r: [f64; 3], b: [f64; 3], terms: [f64; 3]) -> [f64; 3] {
+        [0, 1, 2].map(|c| {
+            let r = r[c].abs();
+            if r.is_nan() {
+                return f64::NAN;
+            }
+            if r <= ROUNDING_ULPS * f64::EPSILON * terms[c].abs() {
+                return 0.0;
+            }
+            r / b[c].abs().max(self.0[c]).max(f64::MIN_POSITIVE)
+        })
+    }
+
+    /// The row measure of a residual `r` of iterate `b` at patch `i`, with the row's terms
+    /// taken as `|E_i| + |B_i + r| + |B_i|` (exact for non-negative systems).
+    #[inline]
+    pub(crate) fn of_residual(&self, sys: &System, i: usize, r: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+        let e = sys.emit[i];
+        self.row(
+            r,
+            b,
+            [0, 1, 2].map(|c| e[c].abs() + (b[c] + r[c]).abs() + b[c].abs()),
+        )
+    }
+}
+
+/// Per channel: the absolute residual `||E + diag(rho) F b - b||_inf` and the per-patch
+/// measure of the rule (see [`Floor`]), in one pass over `F`, rows in parallel.
+pub(crate) fn measure(
+    sys: &System,
+    rows: &Rows,
+    b: &[[f64; 3]],
+    floor: &Floor,
+) -> ([f64; 3], [f64; 3]) {
+    (0..rows.len())
+        .into_par_iter()
+        .map(|i| {
+            let g = gather(sys, rows, b, i);
+            let r = [0, 1, 2].map(|c| g[c] - b[i][c]);
+            (r.map(f64::abs), floor.of_residual(sys, i, r, b[i]))
+        })
+        .reduce(
+            || ([0.0; 3], [0.0; 3]),
+            |a, b| (max3(a.0, b.0), max3(a.1, b.1)),
+        )
+}
+
+/// The largest of three, keeping NaN.
+#[inline]
+pub(crate) fn worst(v: [f64; 3]) -> f64 {
+    let m = max3(v, [v[1], v[2], v[0]]);
+    max3(m, [m[2], m[0], m[1]])[0]
+}
+
+/// The worst patch's relative residual of `b` (see the [module docs](self)) with the floor
+/// of `opts`; `inf` when `b` does not have one entry per patch or is not finite.
+pub fn patch_residual(sys: &System, b: &[[f64; 3]], opts: &Options) -> f64 {
+    if b.len() != sys.len() || sys.validate().is_err() || opts.validate().is_err() {
+        return f64::INFINITY;
+    }
+    let floor = Floor::new(opts, &Scale::new(sys.emit));
+    let p = worst(measure(sys, &Rows::new(sys.f), b, &floor).1);
+    if p.is_finite() {
+        p
+    } else {
+        f64::INFINITY
+    }
+}
+
 /// How much `diag(rho) F` can amplify: `max_i rho_ic sum_j |F_ij|` per channel, which bounds
 /// its spectral radius (and its infinity norm).
 #[derive(Clone, Copy, Debug)]
@@ -701,6 +831,8 @@ pub(crate) struct Outcome {
     pub(crate) b: Vec<[f64; 3]>,
     pub(crate) iterations: usize,
     pub(crate) residual: f64,
+    /// The per-patch measure of `b` ([`SolveReport::patch_residual`]).
+    pub(crate) patch_residual: f64,
     pub(crate) history: Vec<f64>,
     pub(crate) notes: Vec<String>,
 }
@@ -717,20 +849,29 @@ pub(crate) fn finish(
     if diverging(out.residual) || out.b.iter().flatten().any(|v| !v.is_finite()) {
         return Err(divergence(solver, out.iterations, out.residual, opts, gain));
     }
-    let converged = out.residual <= opts.tolerance;
+    let converged = out.residual <= opts.tolerance && out.patch_residual <= opts.tolerance;
     let mut report = SolveReport {
         solver: solver.to_string(),
         iterations: out.iterations,
         residual: out.residual,
         history: out.history,
         seconds: start.elapsed().as_secs_f64(),
+        patch_residual: out.patch_residual,
         converged,
         notes: out.notes,
     };
     if converged {
         return Ok((out.b, report));
     }
-    let hint = cap_hint(solver, &report.history, opts.tolerance, gain);
+    let mut hint = cap_hint(solver, &report.history, opts.tolerance, gain);
+    if out.residual <= opts.tolerance {
+        hint = format!(
+            "; the worst patch's relative residual is still {:.3e} (the per-patch rule; \
+             a dim patch next to a bright emitter converges last: raise --floor or \
+             --max-iterations){hint}",
+            out.patch_residual
+        );
+    }
     if opts.keep_partial {
         report.notes.push(format!(
             "stopped after {} iterations at residual {:.3e} (tolerance {:.1e}){hint}",
@@ -747,18 +888,13 @@ pub(crate) fn finish(
     })
 }
 
-/// The loop shared by the sweeping solvers (Jacobi, Gauss-Seidel).
-///
-/// `pass(b, next)` writes the next iterate into `next` and returns the per-channel absolute
-/// residual of `b`, so each pass over `F` also measures the iterate it starts from. The
-/// loop returns the first iterate whose residual is within tolerance (the one the residual
-/// was computed for, so the reported residual is exact), or the last one at the cap.
 /// What every solver does first: starts the clock, checks the options and the system, and
 /// builds the row view of `F`, the residual scale and the gain bound with its notes.
 pub(crate) struct Prologue<'a> {
     pub(crate) start: Instant,
     pub(crate) rows: Rows<'a>,
     pub(crate) scale: Scale,
+    pub(crate) floor: Floor,
     pub(crate) gain: Gain,
     pub(crate) notes: Vec<String>,
 }
@@ -771,28 +907,38 @@ impl<'a> Prologue<'a> {
         sys.validate()?;
         let rows = Rows::new(sys.f);
         let scale = Scale::new(sys.emit);
+        let floor = Floor::new(opts, &scale);
         let gain = Gain::new(sys, &rows);
         let notes = gain.notes();
         Ok(Prologue {
             start,
             rows,
             scale,
+            floor,
             gain,
             notes,
         })
     }
 }
 
+/// The loop shared by the sweeping solvers (Jacobi, Gauss-Seidel).
+///
+/// `pass(rows, floor, b, next)` writes the next iterate into `next` and returns the
+/// per-channel absolute residual of `b` and its per-patch measure ([`Floor::row`]), so each
+/// pass over `F` also measures the iterate it starts from. The loop returns the first
+/// iterate within tolerance by both measures (the one they were computed for, so the
+/// reported residuals are exact), or the last one at the cap.
 pub(crate) fn sweep_loop(
     solver: &str,
     sys: &System,
     opts: &Options,
-    mut pass: impl FnMut(&Rows, &[[f64; 3]], &mut [[f64; 3]]) -> [f64; 3],
+    mut pass: impl FnMut(&Rows, &Floor, &[[f64; 3]], &mut [[f64; 3]]) -> ([f64; 3], [f64; 3]),
 ) -> Result<(Vec<[f64; 3]>, SolveReport)> {
     let Prologue {
         start,
         rows,
         scale,
+        floor,
         gain,
         notes,
     } = Prologue::new(sys, opts)?;
@@ -801,16 +947,19 @@ pub(crate) fn sweep_loop(
     let mut history = Vec::new();
     let mut k = 0;
     loop {
-        let r = scale.rel(pass(&rows, &b, &mut next));
+        let (abs, per_patch) = pass(&rows, &floor, &b, &mut next);
+        let r = scale.rel(abs);
+        let p = worst(per_patch);
         history.push(r);
         if diverging(r) {
             return Err(divergence(solver, k, r, opts, &gain));
         }
-        if r <= opts.tolerance || k >= opts.max_iterations {
+        if (r <= opts.tolerance && p <= opts.tolerance) || k >= opts.max_iterations {
             let out = Outcome {
                 b,
                 iterations: k,
                 residual: r,
+                patch_residual: p,
                 history,
                 notes,
             };
@@ -1015,6 +1164,7 @@ mod tests {
             tolerance: 1e-12,
             max_iterations: 1_000_000,
             keep_partial: false,
+            floor: None,
         }
     }
 
@@ -1133,6 +1283,7 @@ mod tests {
                 tolerance: 1e-12,
                 max_iterations: 2,
                 keep_partial: false,
+                floor: None,
             };
             match solve(method, &sys, &opts) {
                 Err(Error::NotConverged {

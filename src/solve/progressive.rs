@@ -32,8 +32,10 @@
 //! docs](super) (cheap: no pass over `F`); it is an upper bound on the true relative residual.
 //! The true residual is computed when the bound falls within tolerance and, since it is often
 //! well below the bound, also every `n` shots for `n` patches (one pass over `F`, about what
-//! those shots cost); the run stops as soon as either is within tolerance, and the report's
-//! final `residual` is always the true one. An iteration is one shot, so a scene of `n`
+//! those shots cost), with the per-patch measure of the [module docs](super) from the same
+//! pass; the run stops as soon as both are within tolerance (when only the dimmest patches
+//! lack, the next measurement waits until the bound has fallen by what they lack), and the
+//! report's final `residual` is always the true one. An iteration is one shot, so a scene of `n`
 //! patches typically needs a few times `n` iterations.
 //!
 //! ## Ambient term
@@ -46,7 +48,7 @@
 use crate::matrix::Csr;
 
 use super::{
-    abs_residual, divergence, diverging, finish, max3, Gain, Options, Outcome, Prologue, Rows,
+    divergence, diverging, finish, max3, measure, worst, Gain, Options, Outcome, Prologue, Rows,
     Scale, SolveReport, Solver, System,
 };
 use crate::error::Result;
@@ -137,6 +139,7 @@ impl Solver for Progressive {
             start,
             rows,
             scale,
+            floor,
             gain,
             notes,
         } = Prologue::new(sys, opts)?;
@@ -159,20 +162,30 @@ impl Solver for Progressive {
             // too, since it is often well below the bound.
             let periodic = shots > 0 && shots % sys.len().max(1) == 0;
             if r_bound <= check_at || pick.is_none() || at_cap || periodic {
-                let r = scale.rel(abs_residual(sys, &rows, &state.b));
-                if r <= opts.tolerance || pick.is_none() || at_cap {
+                let (abs, per_patch) = measure(sys, &rows, &state.b, &floor);
+                let (r, p) = (scale.rel(abs), worst(per_patch));
+                let done = r <= opts.tolerance && p <= opts.tolerance;
+                if done || pick.is_none() || at_cap {
                     let out = Outcome {
                         b: state.b,
                         iterations: shots,
                         residual: r,
+                        patch_residual: p,
                         history,
                         notes,
                     };
                     return finish(NAME, out, opts, &gain, start);
                 }
                 if r_bound <= check_at {
-                    // Within the bound but not the true residual: only rounding can do that.
-                    check_at = r_bound / 2.0;
+                    // Within the bound but not the true residual (only rounding can do
+                    // that), or the dimmest patches not yet converged: measure again once
+                    // the bound has fallen by what they lack.
+                    let lack = if p > opts.tolerance {
+                        opts.tolerance / p
+                    } else {
+                        1.0
+                    };
+                    check_at = r_bound * lack.min(0.5);
                 }
             }
             if let Some(i) = pick {
@@ -366,6 +379,7 @@ mod tests {
                 tolerance: 1e-14,
                 max_iterations: cap,
                 keep_partial: true,
+                floor: None,
             };
             let (b, report) = Progressive.solve(&sys, &opts).unwrap();
             assert_eq!(report.history.len(), cap + 1);

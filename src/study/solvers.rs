@@ -144,6 +144,7 @@ fn run_case(
         tolerance: settings.tolerance,
         max_iterations: settings.max_iterations,
         keep_partial: true,
+        floor: None,
     };
     for method in METHODS {
         let per_iteration = match method {
