@@ -93,7 +93,7 @@ impl Default for Settings {
             quadrature: 1e-6,
             accuracy: 0.01,
             hide: HIDE,
-            descend: 0.1,
+            descend: 0.03,
             tolerance: 1e-7,
             max_iterations: 10_000,
             max_passes: 8,
