@@ -71,6 +71,9 @@ struct StudyBakesArgs {
         default_value = "0.04,0.02,0.01,0.005,0.0025"
     )]
     errors: Vec<f64>,
+    /// Visibility rays per side of the hierarchical bakes' links.
+    #[arg(long, default_value_t = 4)]
+    link_rays: usize,
 }
 
 #[derive(Args, Debug)]
@@ -526,6 +529,7 @@ fn study_bakes(args: &StudyBakesArgs) -> Result<()> {
         reference: args.reference.clone(),
         flat: args.flat.clone(),
         errors: args.errors.clone(),
+        rays: args.link_rays,
         ..bakes::Settings::full(args.output.clone())
     };
     let (runs, refs) = bakes::run(&settings)?;

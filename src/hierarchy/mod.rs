@@ -258,6 +258,8 @@ pub fn run(
     // Contacts, then buried leaves.
     let contacts = refine::contacts(&e, 1e-6 * diag);
     report.contact_splits = refine::split_along_contacts(&mut e, &contacts, min_area, tol);
+    let standing = refine::standing(&e, &contacts, 1e-6 * diag);
+    report.contact_splits += refine::split_along_contacts(&mut e, &standing, min_area, -tol);
     let normals: Vec<glam::DVec3> = e.normal[..e.roots].to_vec();
     let blockers = Blockers::new(&e, diag);
     // Nothing is buried where nothing can block (a convex room has no solids inside).

@@ -21,7 +21,8 @@
 //! plane, inside it, the rest of the patch in front: a box on a floor), the elements of
 //! the lower patch that the contact line crosses are split down to the minimum area before
 //! any link is made, so that no element straddles a contact ([`contacts`],
-//! [`split_along_contacts`]). Leaves that no ray can reach, such as floor under the box,
+//! [`split_along_contacts`]); the elements of the standing patch along the contact edge
+//! are split as finely, the factor between the two being singular there ([`standing`]). Leaves that no ray can reach, such as floor under the box,
 //! are then marked buried ([`bury`]).
 
 use glam::DVec3;
@@ -183,8 +184,32 @@ pub fn crosses(e: &Elements, el: u32, seg: Contact, tol: f64) -> bool {
     t1 - t0 > 1e-12
 }
 
-/// Splits, down to `min_area`, every element that a contact of its root crosses; returns
-/// the number of splits.
+/// The contact edges seen from the standing side: for each root `s`, its own edges that
+/// [`contacts`] found lying in another root's plane (the foot of a box's side on the
+/// floor). The factor between the two sides is singular along such an edge, so the
+/// standing side is refined along it as finely as the side it stands on.
+pub fn standing(e: &Elements, contacts: &[Vec<Contact>], tol: f64) -> Vec<Vec<Contact>> {
+    let mut out: Vec<Vec<Contact>> = vec![Vec::new(); e.roots];
+    for segs in contacts {
+        for &(a, b) in segs {
+            for (s, list) in out.iter_mut().enumerate() {
+                let c = e.corners(s as u32);
+                let on_edge = (0..c.len()).any(|k| {
+                    let (p, q) = (c[k], c[(k + 1) % c.len()]);
+                    (p.distance(a) <= tol && q.distance(b) <= tol)
+                        || (p.distance(b) <= tol && q.distance(a) <= tol)
+                });
+                if on_edge {
+                    list.push((a, b));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Splits, down to `min_area`, every element that a contact of its root crosses (or, with
+/// a negative `tol`, touches: the element grown by `|tol|`); returns the number of splits.
 pub fn split_along_contacts(
     e: &mut Elements,
     contacts: &[Vec<Contact>],
@@ -207,8 +232,8 @@ pub fn split_along_contacts(
                 continue;
             }
             if crossed {
+                splits += usize::from(e.is_leaf(el));
                 let kids = e.split(el);
-                splits += 1;
                 // Reverse, so that children are visited in order.
                 stack.extend(kids.iter().rev());
             }

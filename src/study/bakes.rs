@@ -282,6 +282,8 @@ pub struct Settings {
     pub flat: Vec<usize>,
     /// Link tolerances of the hierarchical bakes.
     pub errors: Vec<f64>,
+    /// Visibility rays per side of the hierarchical links (`--link-rays`).
+    pub rays: usize,
     /// Output folder.
     pub out: PathBuf,
 }
@@ -294,6 +296,7 @@ impl Settings {
             reference: PathBuf::from("docs/reference/cornell-mitsuba.csv"),
             flat: vec![500, 1000, 2000, 4000],
             errors: vec![0.04, 0.02, 0.01, 0.005, 0.0025],
+            rays: hierarchy::Settings::default().rays,
             out,
         }
     }
@@ -344,6 +347,7 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
         let vis = Visibility::new(&patches)?;
         let settings = hierarchy::Settings {
             error: err,
+            rays: s.rays,
             ..Default::default()
         };
         let sol = hierarchy::run(&patches, &vis, &settings, &|_| {})?;
