@@ -272,12 +272,18 @@ mod tests {
         ])
     }
 
-    #[test]
-    fn children_areas_sum_to_the_parent() {
+    /// Two roots: [`unit_quad`] and a skew triangle.
+    fn quad_and_triangle() -> Elements {
         let mut e = Elements::default();
         e.add_root(unit_quad(), DVec3::Z);
         let tri = Piece::Tri([DVec3::ZERO, DVec3::X, DVec3::new(0.3, 1.7, 0.2)]);
         e.add_root(tri, DVec3::Z);
+        e
+    }
+
+    #[test]
+    fn children_areas_sum_to_the_parent() {
+        let mut e = quad_and_triangle();
         for root in [0u32, 1] {
             let kids = e.split(root);
             // A second split returns the same children.
@@ -314,10 +320,7 @@ mod tests {
 
     #[test]
     fn locate_finds_the_leaf_holding_a_point() {
-        let mut e = Elements::default();
-        e.add_root(unit_quad(), DVec3::Z);
-        let tri = Piece::Tri([DVec3::ZERO, DVec3::X, DVec3::new(0.3, 1.7, 0.2)]);
-        e.add_root(tri, DVec3::Z);
+        let mut e = quad_and_triangle();
         for root in [0u32, 1] {
             let kids = e.split(root);
             e.split(kids[1]);

@@ -279,6 +279,24 @@ fn tick(v: &f64) -> String {
     }
 }
 
+/// A log axis's tick label: only at 1, 2 and 5 times a power of ten (blank elsewhere), so
+/// that the labels of a range crossing a decade do not run into each other.
+fn log_tick(v: &f64) -> String {
+    let a = v.abs();
+    if !(a > 0.0 && a.is_finite()) {
+        return tick(v);
+    }
+    let m = a / 10f64.powf(a.log10().floor());
+    if [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .any(|&k| (m - k).abs() < 1e-6 * k)
+    {
+        tick(v)
+    } else {
+        String::new()
+    }
+}
+
 fn plot<DB, X, Y>(
     root: &DrawingArea<DB, Shift>,
     spec: &Spec,
@@ -302,9 +320,16 @@ where
         .y_label_area_size(80)
         .build_cartesian_2d(xr, yr)
         .map_err(|e| err(&e))?;
+    let pick = |log: bool| -> &dyn Fn(&f64) -> String {
+        if log {
+            &log_tick
+        } else {
+            &tick
+        }
+    };
     ch.configure_mesh()
-        .x_label_formatter(&tick)
-        .y_label_formatter(&tick)
+        .x_label_formatter(pick(spec.log_x))
+        .y_label_formatter(pick(spec.log_y))
         .x_desc(spec.x_label)
         .y_desc(spec.y_label)
         .label_style(("sans-serif", 15))
