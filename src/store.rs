@@ -38,7 +38,7 @@ use crate::output::folder::{hex, sha256_file};
 use crate::output::{write_atomic, write_folder, FolderKind};
 use crate::repair::Repair;
 
-/// The folder layout version [`write`] produces and [`read`] accepts.
+/// The folder layout version [`fn@write`] produces and [`fn@read`] accepts.
 pub const FORMAT: u32 = 2;
 
 /// The files whose SHA-256 the provenance records.
@@ -325,7 +325,7 @@ impl<R: Read> Read for Hashing<R> {
 }
 
 /// Parses a Matrix Market file of a factors folder: `coordinate real general`, `n x n`,
-/// entries row by row with increasing columns, as [`write`] makes them. `bytes` is the
+/// entries row by row with increasing columns, as [`fn@write`] makes them. `bytes` is the
 /// file's length (it caps the header's entry count); `pattern`, when given, is the
 /// `(indptr, indices)` the entries must repeat (stderr.mtx follows F.mtx). `path` names the
 /// file in messages. Everything is read, so the hash covers the whole file.

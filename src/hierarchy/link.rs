@@ -395,7 +395,7 @@ const BURIED_TRIES: usize = 4;
 /// Kernel-weighted visible fraction between `r` and `s` from `rays²` traced segments.
 ///
 /// Receiver points are drawn only on the unburied part of `r` (a point whose leaf is
-/// buried is drawn again in its stratum, up to [`BURIED_TRIES`] times, then the stratum is
+/// buried is drawn again in its stratum, up to `BURIED_TRIES` times, then the stratum is
 /// skipped): the fraction is that of the surface that can receive, matching the link's
 /// factor per visible area ([`super::solve`]). Source points cover all of `s`, buried
 /// parts included, whose rays are blocked: what `r` sees of the source's radiating part.

@@ -552,7 +552,7 @@ struct Entry {
 /// `descend × eps` is therefore replaced by entries to the source's children, each with the
 /// leaf's own factor, down to where the error is below it or the source is a leaf.
 ///
-/// Factors are integrated to `accuracy × eps / (ρ_l B_s)` (as in [`tolerances`]). Returns
+/// Factors are integrated to `accuracy × eps / (ρ_l B_s)` (as in `tolerances`). Returns
 /// the lists and the work spent.
 pub fn gather_lists(
     ctx: &Context,

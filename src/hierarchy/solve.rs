@@ -39,7 +39,8 @@ use super::element::{Elements, NONE};
 pub struct State {
     /// Radiosity of every element (leaves solved, parents the visible-area average).
     pub b: Vec<[f64; 3]>,
-    /// Spread `max - min` of leaf radiosity below each element, per channel.
+    /// Spread of radiosity over each element, per channel: for a leaf its estimated
+    /// variation ([`estimate_spread`]), for a parent the range covered by its leaves.
     pub spread: Vec<[f64; 3]>,
     /// Irradiance each leaf received in the last iteration (0 for parents).
     pub h: Vec<[f64; 3]>,
