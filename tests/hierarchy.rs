@@ -170,6 +170,16 @@ fn shadows_and_contacts_refine_and_refinement_stops_at_the_tolerance() {
     let min_area = sol.report.min_area;
     assert!(sol.report.partial_links > 0);
     assert!(sol.report.buried > 0, "floor under the blocks is buried");
+    // No leaf gathers more than all it sees: the largest factor sum within 5 of its bars
+    // (5: a one-sided tail of 3e-7 per leaf, 1% over the ~25,000 leaves). Leaves beside
+    // a block once inherited their parent's view of the wall behind it and reached 1.05,
+    // 12 bars over.
+    let (sum, bar) = sol.report.max_row_sum;
+    assert!(
+        sum <= 1.0 + 5.0 * bar,
+        "largest leaf factor sum {sum} ± {bar}"
+    );
+    assert!(bar < 0.02, "bar {bar}");
     // Floor leaves (normal +y, y = 0) within 3 mm of the short block's edge from
     // (130, 65) to (290, 114), outside the block, are at the minimum size.
     let (a, b) = (
