@@ -512,6 +512,12 @@ fn evaluate_into(
 /// visible: `CHECK_RAYS²` rays, all free or the leaf traces its own visibility.
 const CHECK_RAYS: usize = 2;
 
+/// Rays per side with which a leaf traces its visibility of the pieces of a split source
+/// (`PIECE_RAYS²` each): the pieces' fractions average over the source, so fewer rays
+/// than a link's do (on the Cornell box at `--error 0.01`, 2 instead of 4 halved the rays
+/// of the whole bake for 0.1% on the worst face average).
+const PIECE_RAYS: usize = 2;
+
 /// Where a gather entry's visible fraction comes from.
 #[derive(Clone, Copy)]
 enum Sight {
@@ -521,6 +527,8 @@ enum Sight {
     Check(f64, f64),
     /// Traced from the leaf.
     Trace,
+    /// Traced from the leaf with this many rays per side (pieces of a split source).
+    TraceWith(usize),
 }
 
 /// One entry of a leaf's gather list while it is built.
@@ -609,6 +617,12 @@ pub fn gather_lists(
                 let (v, v_bar, traced) = match v {
                     Sight::Given(v, bar) => (v, bar, false),
                     Sight::Trace => trace(cost),
+                    Sight::TraceWith(m) => {
+                        let seen = link::visible_fraction_n(ctx, l, src, m);
+                        cost.rays += seen.rays;
+                        let nm = (m * m) as f64;
+                        (seen.v, (seen.v * (1.0 - seen.v) / nm).sqrt(), true)
+                    }
                     Sight::Check(v, bar) => {
                         let seen = link::visible_fraction_n(ctx, l, src, CHECK_RAYS);
                         cost.rays += seen.rays;
@@ -685,7 +699,7 @@ pub fn gather_lists(
                         continue;
                     }
                     let v = if en.traced {
-                        Sight::Trace
+                        Sight::TraceWith(PIECE_RAYS)
                     } else {
                         Sight::Given(en.v, en.v_bar)
                     };
