@@ -46,6 +46,15 @@ pub struct State {
     pub h: Vec<[f64; 3]>,
 }
 
+impl State {
+    /// Makes room for `n` elements (new ones start at 0).
+    fn fit(&mut self, n: usize) {
+        self.b.resize(n, [0.0; 3]);
+        self.spread.resize(n, [0.0; 3]);
+        self.h.resize(n, [0.0; 3]);
+    }
+}
+
 /// What a solve did.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct SolveStats {
@@ -106,11 +115,7 @@ pub fn solve(
 ) -> SolveStats {
     let n = e.len();
     let vis = e.visible_areas();
-    if state.b.len() != n {
-        state.b.resize(n, [0.0; 3]);
-        state.spread.resize(n, [0.0; 3]);
-        state.h.resize(n, [0.0; 3]);
-    }
+    state.fit(n);
     let floor = 1e-9 * b_ref.max(f64::MIN_POSITIVE);
     let mut stats = SolveStats::default();
     let mut new: Vec<([f64; 3], [f64; 3])> = vec![([0.0; 3], [0.0; 3]); g.leaves.len()];
@@ -166,11 +171,7 @@ pub fn solve_push(
 ) -> SolveStats {
     let n = e.len();
     let vis = e.visible_areas();
-    if state.b.len() != n {
-        state.b.resize(n, [0.0; 3]);
-        state.spread.resize(n, [0.0; 3]);
-        state.h.resize(n, [0.0; 3]);
-    }
+    state.fit(n);
     let floor = 1e-9 * b_ref.max(f64::MIN_POSITIVE);
     let mut stats = SolveStats::default();
     let mut gathered = vec![[0.0f64; 3]; n];
