@@ -39,6 +39,39 @@ pub fn over_one(sum: f64, se: f64, k: f64) -> bool {
     sum > 1.0 + (k * se).max(1e-9)
 }
 
+/// Family-wise false-alarm rate of [`FormFactors::row_over_one_beyond_chance`]: an honest
+/// matrix is refused with at most this probability, whatever its size.
+pub const ROW_ALARM: f64 = 1e-3;
+
+/// A row found over 1 by more than its bar allows.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RowExcess {
+    /// The row (emitting patch).
+    pub row: usize,
+    /// Its sum.
+    pub sum: f64,
+    /// Standard error of the sum.
+    pub se: f64,
+    /// Degrees of freedom of that standard error (Welch–Satterthwaite; infinite when every
+    /// entry is exact).
+    pub dof: f64,
+    /// The multiple of `se` the sum was allowed above 1.
+    pub k: f64,
+}
+
+/// The one-sided Student-t quantile `t` with `P(T > t) = tail` for `dof` degrees of
+/// freedom (the normal quantile when `dof` is infinite).
+fn t_quantile(tail: f64, dof: f64) -> f64 {
+    use statrs::distribution::{ContinuousCDF, Normal, StudentsT};
+    if dof.is_finite() {
+        StudentsT::new(0.0, 1.0, dof)
+            .map(|t| t.inverse_cdf(1.0 - tail))
+            .unwrap_or(f64::INFINITY)
+    } else {
+        Normal::standard().inverse_cdf(1.0 - tail)
+    }
+}
+
 /// What [`repair_row_sums`] changed.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct RowRepair {
@@ -133,6 +166,9 @@ pub struct FormFactors {
     pub estimator: String,
     /// Seed of the random streams.
     pub seed: u64,
+    /// Independent replicates behind each standard error (0 when not known: the checks
+    /// then assume the fewest, 2).
+    pub replicates: usize,
 }
 
 /// Form factors at least this large count as significant for the reciprocity figure.
@@ -351,6 +387,7 @@ impl CsrBuilder {
             seconds,
             estimator,
             seed,
+            replicates: 0,
         }
     }
 }
@@ -434,6 +471,46 @@ impl FormFactors {
             .outer_view(i)
             .map(|r| r.data().iter().sum::<f64>() + 0.0)
             .unwrap_or(0.0)
+    }
+
+    /// The first row whose sum is over 1 by more than its bar allows at the family-wise
+    /// rate [`ROW_ALARM`] over all rows, or `None`.
+    ///
+    /// A row's sum is the sum of independent replicate means, so its estimated standard
+    /// error has Welch–Satterthwaite degrees of freedom `ν = (R - 1) (Σ s²)² / Σ s⁴` for
+    /// `R` replicates (Satterthwaite 1946), and `(sum - 1) / se` of an honest row is at
+    /// most Student-t with `ν` degrees of freedom. With `n` rows, each is allowed up to
+    /// the t quantile of tail `ROW_ALARM / n` (Bonferroni), and beyond rounding
+    /// (`1e-9`, as [`over_one`]). Rows sharing rays (hemisphere shooting) are negatively
+    /// correlated within the row, which only makes the test more lenient.
+    pub fn row_over_one_beyond_chance(&self) -> Option<RowExcess> {
+        let n = self.len();
+        let per_entry = (self.replicates.max(2) - 1) as f64;
+        let tail = ROW_ALARM / n.max(1) as f64;
+        (0..n).find_map(|i| {
+            let sum = self.row_sum(i);
+            if sum <= 1.0 + 1e-9 {
+                return None;
+            }
+            let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));
+            let (s2, s4) = self.se[lo..hi]
+                .iter()
+                .fold((0.0, 0.0), |(a, b), s| (a + s * s, b + s.powi(4)));
+            let se = s2.sqrt();
+            let dof = if s4 > 0.0 {
+                per_entry * s2 * s2 / s4
+            } else {
+                f64::INFINITY
+            };
+            let k = if se > 0.0 { t_quantile(tail, dof) } else { 0.0 };
+            over_one(sum, se, k).then_some(RowExcess {
+                row: i,
+                sum,
+                se,
+                dof,
+                k,
+            })
+        })
     }
 
     /// Standard error of the sum of row `i` (entries' errors added in quadrature).
@@ -582,6 +659,88 @@ impl FormFactors {
 mod tests {
     use super::*;
     type TriMat = Triplets;
+
+    /// `m` matrices of `n` rows of `k` entries whose true row sums are `1 + shift` row
+    /// standard errors, each entry the mean of `reps` normal replicates (unequal spreads,
+    /// so that some rows' errors are dominated by a few entries); returns how many
+    /// matrices [`FormFactors::row_over_one_beyond_chance`] refuses.
+    fn refused(m: usize, n: usize, k: usize, reps: usize, shift: f64, seed: u64) -> usize {
+        let mut refused = 0;
+        for t in 0..m {
+            let mut rng = crate::sampling::Pcg32::keyed(seed, t as u64, 0, 0);
+            let mut normal = || {
+                let (u, v) = (1.0 - rng.next_f64(), rng.next_f64());
+                (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+            };
+            let mut rows = Vec::new();
+            for _ in 0..n {
+                let sigma: Vec<f64> = (0..k)
+                    .map(|j| 1e-3 * (1.0 + (j % 5) as f64).powi(2))
+                    .collect();
+                let row_se = (sigma.iter().map(|s| s * s).sum::<f64>() / reps as f64).sqrt();
+                let truth = (1.0 + shift * row_se) / k as f64;
+                let row: Vec<Entry> = (0..k)
+                    .map(|j| {
+                        let x: Vec<f64> = (0..reps).map(|_| truth + sigma[j] * normal()).collect();
+                        let mean = x.iter().sum::<f64>() / reps as f64;
+                        let var =
+                            x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (reps - 1) as f64;
+                        Entry {
+                            j: j as u32,
+                            f: mean,
+                            se: (var / reps as f64).sqrt(),
+                        }
+                    })
+                    .collect();
+                rows.push(row);
+            }
+            let mut ff =
+                FormFactors::from_rows(rows, vec![1.0; n.max(k)], 0, 0.0, "test".into(), seed);
+            ff.replicates = reps;
+            refused += usize::from(ff.row_over_one_beyond_chance().is_some());
+        }
+        refused
+    }
+
+    #[test]
+    fn honest_rows_over_one_are_refused_at_most_at_the_alarm_rate() {
+        // 4000 honest matrices of 25 closed rows: expected at most 4 refusals at the
+        // family-wise rate 1e-3; more than 14 has probability below 1e-5 if the rate holds.
+        for reps in [2, 4] {
+            let r = refused(4000, 25, 25, reps, 0.0, 11);
+            assert!(
+                r <= 14,
+                "{r} of 4000 honest matrices refused with {reps} replicates"
+            );
+        }
+    }
+
+    #[test]
+    fn a_row_well_over_one_is_refused() {
+        // A row 10 of its standard errors over 1 (every row of the matrix is) is caught.
+        let r = refused(200, 25, 25, 8, 10.0, 12);
+        assert!(r >= 190, "only {r} of 200 caught");
+        // Exact rows: any excess beyond rounding is refused.
+        let rows = vec![
+            vec![
+                Entry {
+                    j: 1,
+                    f: 0.6,
+                    se: 0.0,
+                },
+                Entry {
+                    j: 2,
+                    f: 0.4 + 1e-6,
+                    se: 0.0,
+                },
+            ],
+            vec![],
+            vec![],
+        ];
+        let ff = FormFactors::from_rows(rows, vec![1.0; 3], 0, 0.0, "exact".into(), 0);
+        let e = ff.row_over_one_beyond_chance().expect("refused");
+        assert_eq!((e.row, e.k), (0, 0.0));
+    }
 
     #[test]
     fn repair_scales_only_rows_past_the_bound() {

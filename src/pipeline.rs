@@ -301,6 +301,42 @@ pub fn check_budget(
     budget::check(&estimate(patches), max_memory, estimate)
 }
 
+/// Refuses stored factors with a row over 1 by more than its bar allows
+/// ([`FormFactors::row_over_one_beyond_chance`]), unless `repair` restores the row sums.
+fn check_rows(dir: &Path, ff: &FormFactors, repair: Repair) -> Result<()> {
+    if matches!(repair, Repair::Closure | Repair::Both) {
+        return Ok(());
+    }
+    let Some(r) = ff.row_over_one_beyond_chance() else {
+        return Ok(());
+    };
+    let by = if r.se > 0.0 {
+        format!(
+            "{:.1} standard errors ({:.1} allowed by chance over {} rows at a false-alarm \
+             rate of {:.0e}, {:.0} degrees of freedom)",
+            (r.sum - 1.0) / r.se,
+            r.k,
+            ff.len(),
+            crate::matrix::ROW_ALARM,
+            r.dof
+        )
+    } else {
+        String::from("more than rounding, with no error bar")
+    };
+    Err(Error::Mismatch {
+        path: dir.join("F.mtx"),
+        msg: format!(
+            "row {} of the matrix (patch {}) sums to {:.6} ± {:.1e}, over 1 by {by}: no physical row \
+             sums over 1; bake with --repair closure (or both) to restore the row sums, or \
+             recompute the factors with more samples",
+            r.row + 1,
+            r.row,
+            r.sum,
+            r.se
+        ),
+    })
+}
+
 /// Computes the form factors of a patch set (builds the BVH as its own stage).
 pub fn form_factors(
     patches: &PatchSet,
@@ -424,7 +460,11 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     })?;
     let (ff, embree) = match &cfg.factors {
         Some(dir) => (
-            timer.run("read factors", 0, || store::read(dir, &patches))?,
+            timer.run("read factors", 0, || -> Result<FormFactors> {
+                let ff = store::read(dir, &patches)?;
+                check_rows(dir, &ff, cfg.repair)?;
+                Ok(ff)
+            })?,
             String::from("not used"),
         ),
         None => {

@@ -71,6 +71,10 @@ pub struct Provenance {
     pub max_edge: f64,
     /// The repair applied after estimation (`None`, `Reciprocity`, `Closure`, `Both`).
     pub repair: String,
+    /// Independent replicates behind each standard error (0, or absent in folders written
+    /// before it was recorded: not known).
+    #[serde(default)]
+    pub replicates: usize,
     /// SHA-256 (lower-case hex) of each file of [`HASHED`], by name.
     pub sha256: BTreeMap<String, String>,
 }
@@ -266,6 +270,7 @@ fn write_files(
         seconds: ff.seconds,
         max_edge: patches.max_edge,
         repair: format!("{repair:?}"),
+        replicates: ff.replicates,
         sha256,
     };
     let prov_path = dir.join("provenance.json");
@@ -654,6 +659,7 @@ pub fn read(dir: &Path, patches: &PatchSet) -> Result<FormFactors> {
         seconds: prov.seconds,
         estimator: prov.estimator,
         seed: prov.seed,
+        replicates: prov.replicates,
     })
 }
 

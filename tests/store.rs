@@ -185,3 +185,55 @@ fn a_folder_with_another_runs_files_is_refused() {
     assert!(err.contains("F.mtx"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_stored_row_over_one_beyond_its_bar_is_refused_unless_repaired() {
+    let dir = temp_dir("overone");
+    let scene = Scene::load("cornell").expect("scene");
+    let patches = PatchSet::build(&scene, Resolution::Patches(80)).expect("patches");
+    let est = BakeConfig::default().estimator;
+    let (mut ff, _, _) = pipeline::form_factors(&patches, &est, 5, &Quiet).expect("factors");
+    // The honest folder is accepted (this is also what `bake_reuses_factors` relies on).
+    let honest = dir.join("honest");
+    store::write(&honest, &patches, &ff, Repair::None).expect("write");
+    let bake = |factors: &std::path::Path, repair: Repair, out: &str| {
+        pipeline::bake(
+            &BakeConfig {
+                out_dir: dir.join(out),
+                resolution: Resolution::Patches(80),
+                estimator: est.clone(),
+                seed: 5,
+                preview: (32, 32),
+                factors: Some(factors.to_path_buf()),
+                repair,
+                ..BakeConfig::default()
+            },
+            &Quiet,
+        )
+    };
+    bake(&honest, Repair::None, "honest-bake").expect("an honest folder is accepted");
+    // Row 7 scaled to sum 1 + 12 of its standard errors (at least 1.01), every entry
+    // still in [0, 1]: a valid, hashed folder whose physics is wrong.
+    let (lo, hi) = (ff.f.indptr().index(7), ff.f.indptr().index(8));
+    let (sum, se) = (ff.row_sum(7), ff.row_sum_stderr(7));
+    let target = 1.0 + (12.0 * se).max(0.01);
+    assert!(sum > 0.5 && target < 1.5, "row 7: {sum} ± {se}");
+    for v in &mut ff.f.data_mut()[lo..hi] {
+        *v *= target / sum;
+        assert!(*v <= 1.0);
+    }
+    let bad = dir.join("bad");
+    store::write(&bad, &patches, &ff, Repair::None).expect("write");
+    let err = bake(&bad, Repair::None, "bad-bake")
+        .expect_err("a row over 1 must be refused")
+        .to_string();
+    assert!(
+        err.contains("F.mtx") && err.contains("patch 7") && err.contains("--repair closure"),
+        "{err}"
+    );
+    assert!(!dir.join("bad-bake").exists(), "nothing written");
+    // Reciprocity alone does not restore row sums: still refused; closure is accepted.
+    assert!(bake(&bad, Repair::Reciprocity, "bad-recip").is_err());
+    bake(&bad, Repair::Closure, "bad-closure").expect("repaired rows are accepted");
+    let _ = std::fs::remove_dir_all(&dir);
+}

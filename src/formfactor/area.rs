@@ -132,6 +132,10 @@ impl Estimator for AreaMc {
         true
     }
 
+    fn replicates(&self) -> usize {
+        self.replicates.max(2)
+    }
+
     fn row(&self, ctx: &Context, a: usize, row: &mut Row, scratch: &mut Buffers) {
         self.row_with(ctx, a, row, ctx.vis, scratch);
     }

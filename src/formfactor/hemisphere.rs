@@ -100,6 +100,10 @@ impl Estimator for Hemisphere {
         )
     }
 
+    fn replicates(&self) -> usize {
+        self.replicates.max(2)
+    }
+
     fn row_bound(&self, n: usize) -> usize {
         // One entry per ray at most.
         let st = self.strata.max(1);

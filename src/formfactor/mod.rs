@@ -114,6 +114,11 @@ pub trait Estimator: Sync {
     fn row_bound(&self, n: usize) -> usize {
         n
     }
+    /// Independent replicates behind each standard error (0 for an estimator whose
+    /// standard errors are not replicate-based).
+    fn replicates(&self) -> usize {
+        0
+    }
     /// Computes row `i` (only `j > i` when [`Estimator::upper_only`]) into `row`, which
     /// arrives cleared, working in the driver's `scratch`.
     fn row(&self, ctx: &Context, i: usize, row: &mut Row, scratch: &mut Scratch);
@@ -242,13 +247,14 @@ pub fn compute_timed(
             split.assembly += t.elapsed().as_secs_f64();
         }
     }
-    let ff = csr.finish(
+    let mut ff = csr.finish(
         area.clone(),
         rays,
         split.rows + split.assembly,
         est.name(),
         ctx.seed,
     );
+    ff.replicates = est.replicates();
     (ff, split)
 }
 

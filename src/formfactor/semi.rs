@@ -280,6 +280,10 @@ impl Estimator for SemiAnalytic {
         true
     }
 
+    fn replicates(&self) -> usize {
+        self.replicates.max(2)
+    }
+
     fn row(&self, ctx: &Context, i: usize, row: &mut Row, scratch: &mut Buffers) {
         self.row_with(ctx, i, row, ctx.vis, scratch);
     }
