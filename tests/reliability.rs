@@ -120,3 +120,66 @@ fn runs_too_large_are_refused_before_any_work() {
     assert!(!PathBuf::from(o).exists(), "nothing may be written");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Runs the binary with writes capped at `kib` KiB per file (`RLIMIT_FSIZE`, with
+/// `SIGXFSZ` ignored so that a write past the cap fails with `EFBIG`, as a full disk fails
+/// one with `ENOSPC`).
+fn radiosity_capped(kib: u64, args: &[&str]) -> Output {
+    Command::new("bash")
+        .arg("-c")
+        .arg(format!("trap '' XFSZ; ulimit -f {kib}; exec \"$0\" \"$@\""))
+        .arg(env!("CARGO_BIN_EXE_radiosity"))
+        .args(args)
+        .output()
+        .expect("bash runs")
+}
+
+#[test]
+fn a_write_that_fails_midway_leaves_the_previous_folder_whole() {
+    let dir = temp_dir("fsize");
+    for (kind, args) in [
+        (
+            "bake",
+            vec!["bake", "cornell", "--patches", "100", "--size", "64x64"],
+        ),
+        ("factors", vec!["factors", "cornell", "--patches", "100"]),
+    ] {
+        let out_dir = dir.join(kind);
+        let out_s = out_dir.to_str().expect("utf-8 path");
+        let full: Vec<&str> = args.iter().copied().chain(["-o", out_s]).collect();
+        let first = radiosity(&full);
+        assert!(
+            first.status.success(),
+            "{}",
+            String::from_utf8_lossy(&first.stderr)
+        );
+        let manifest = std::fs::read(out_dir.join("manifest.json")).expect("manifest");
+        let files: Vec<_> = std::fs::read_dir(&out_dir)
+            .expect("folder")
+            .map(|e| e.expect("entry").file_name())
+            .collect();
+        // Every output is over 4 KiB: the first write past the cap fails.
+        let second = radiosity_capped(4, &full);
+        let stderr = String::from_utf8_lossy(&second.stderr);
+        assert_eq!(second.status.code(), Some(1), "{kind}: {stderr}");
+        assert!(!stderr.contains("panicked"), "{kind}: {stderr}");
+        assert!(stderr.contains("File too large"), "{kind}: {stderr}");
+        assert_eq!(
+            std::fs::read(out_dir.join("manifest.json")).expect("manifest"),
+            manifest,
+            "{kind}: the previous folder must be untouched"
+        );
+        let after: Vec<_> = std::fs::read_dir(&out_dir)
+            .expect("folder")
+            .map(|e| e.expect("entry").file_name())
+            .collect();
+        assert_eq!(after, files, "{kind}");
+        let left: Vec<_> = std::fs::read_dir(&dir)
+            .expect("parent")
+            .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+            .filter(|n| n.contains("radiosity-tmp") || n.contains("radiosity-old"))
+            .collect();
+        assert!(left.is_empty(), "{kind}: temporaries left: {left:?}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
