@@ -340,7 +340,7 @@ struct BakeArgs {
     #[arg(long, default_value = "512x512")]
     size: String,
     /// Preview exposure: `auto` or a multiplier of the radiosity.
-    #[arg(long, default_value = "auto")]
+    #[arg(long, default_value = "auto", allow_hyphen_values = true)]
     exposure: String,
     /// Reuse form factors stored by `radiosity factors` (same scene and subdivision).
     #[arg(long, value_name = "DIR")]
@@ -435,6 +435,52 @@ fn parse_exposure(s: &str) -> Result<Exposure> {
         Ok(x) if x > 0.0 && x.is_finite() => Ok(Exposure::Fixed(x)),
         _ => bail!("--exposure `{s}`: expected `auto` or a positive number"),
     }
+}
+
+/// Form-factor settings that a stored matrix (`--factors`) or the hierarchical method
+/// makes meaningless: given on the command line with either, they are refused rather than
+/// silently ignored.
+const ESTIMATOR_FLAGS: [&str; 5] = ["estimator", "samples", "rays", "tol", "replicates"];
+
+/// Refuses, before any work, flags that the rest of the command line makes meaningless.
+fn check_meaningless(args: &BakeArgs, m: &clap::ArgMatches) -> Result<()> {
+    use clap::parser::ValueSource;
+    let given = |id: &str| {
+        matches!(
+            m.try_get_raw(id).map(|_| m.value_source(id)),
+            Ok(Some(ValueSource::CommandLine))
+        )
+    };
+    if let Some(dir) = &args.factors {
+        for id in ESTIMATOR_FLAGS.iter().chain(&["seed"]) {
+            if given(id) {
+                bail!(
+                    "--{id} has no effect with --factors: the matrix in {} was computed \
+                     with the settings its provenance.json records (drop --{id}, or run \
+                     `radiosity factors` again with it)",
+                    dir.display()
+                );
+            }
+        }
+        if args.hier.method == MethodArg::Hierarchical {
+            bail!(
+                "--factors stores a flat matrix; --method hierarchical computes its own \
+                 links (drop one of them)"
+            );
+        }
+    }
+    if args.hier.method == MethodArg::Hierarchical {
+        for id in ESTIMATOR_FLAGS {
+            if given(id) {
+                bail!(
+                    "--{id} sets the flat form-factor estimator and has no effect with \
+                     --method hierarchical (its links are set by --error, --link-rays, \
+                     --min-area)"
+                );
+            }
+        }
+    }
+    Ok(())
 }
 
 fn bake(args: &BakeArgs) -> Result<()> {
@@ -591,9 +637,16 @@ fn study_solvers(args: &StudySolversArgs) -> Result<()> {
 
 /// Parses the command line and runs it.
 pub fn run() -> Result<()> {
-    let cli = Cli::parse();
+    use clap::{CommandFactory, FromArgMatches};
+    let matches = Cli::command().get_matches();
+    let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     match &cli.command {
-        Command::Bake(args) => bake(args),
+        Command::Bake(args) => {
+            if let Some(("bake", m)) = matches.subcommand() {
+                check_meaningless(args, m)?;
+            }
+            bake(args)
+        }
         Command::Factors(args) => {
             args.factors.init_threads()?;
             let bars = Bars {
@@ -610,9 +663,12 @@ pub fn run() -> Result<()> {
                 args.factors.max_memory,
                 &bars,
             )?;
+            use std::fmt::Write;
+            let mut o = String::new();
             let p = &s.provenance;
             let d = &s.diagnostics;
-            println!(
+            writeln!(
+                o,
                 "factors of `{}`: {} patches, {} stored, {} rays by {} in {}s",
                 p.scene,
                 p.patches,
@@ -620,25 +676,29 @@ pub fn run() -> Result<()> {
                 p.rays,
                 p.estimator,
                 significant(p.seconds, 4)
-            );
-            println!(
+            )?;
+            writeln!(
+                o,
                 "row sums in [{:.5}, {:.5}], reciprocity error <= {:.1e}",
                 d.min_row_sum, d.max_row_sum, d.reciprocity,
-            );
-            println!("bounds: {}", s.repair.before.summary());
+            )?;
+            writeln!(o, "bounds: {}", s.repair.before.summary())?;
             if s.repair.repair != Repair::None {
-                println!(
+                writeln!(
+                    o,
                     "repair {:?}: entries moved by <= {:.2} standard errors; after: {}",
                     s.repair.repair,
                     s.repair.max_shift_sigmas,
                     s.repair.after.summary()
-                );
+                )?;
             }
-            println!("{}", pipeline::format_times(&s.stages, s.peak_memory));
-            println!(
+            writeln!(o, "{}", pipeline::format_times(&s.stages, s.peak_memory))?;
+            writeln!(
+                o,
                 "wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json, manifest.json}}",
                 args.output.display()
-            );
+            )?;
+            print!("{}", pipeline::wrap(&o, pipeline::WIDTH));
             Ok(())
         }
         Command::Study(args) if args.solvers => {
@@ -700,8 +760,10 @@ pub fn run() -> Result<()> {
             Ok(())
         }
         Command::Scenes => {
+            let width = builtin::NAMES.iter().map(|n| n.len()).max().unwrap_or(0);
             for name in builtin::NAMES {
-                println!("{name}");
+                let what = builtin::describe(name).unwrap_or_default();
+                println!("{name:width$}  {what}");
             }
             Ok(())
         }

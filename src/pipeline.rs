@@ -736,14 +736,23 @@ pub fn format_summary(s: &BakeSummary) -> String {
         "baked `{}`: {} patches, {} triangles, {} vertices",
         s.scene, s.patches, s.triangles, s.vertices
     );
-    let _ = writeln!(
-        o,
-        "form factors: {} ({} rays, {:.2} Mrays/s, Embree {})",
-        s.estimator,
-        s.rays,
-        s.rays as f64 / ff_s.max(1e-9) / 1e6,
-        s.embree
-    );
+    if ff_s > 0.0 {
+        let _ = writeln!(
+            o,
+            "form factors: {} ({} rays, {:.2} Mrays/s, Embree {})",
+            s.estimator,
+            s.rays,
+            s.rays as f64 / ff_s / 1e6,
+            s.embree
+        );
+    } else {
+        let _ = writeln!(
+            o,
+            "form factors: {}, read from the stored folder (no rays cast now; {} when \
+             they were computed)",
+            s.estimator, s.rays
+        );
+    }
     let d = &s.diagnostics;
     let _ = writeln!(
         o,
@@ -787,7 +796,45 @@ pub fn format_summary(s: &BakeSummary) -> String {
         }
     );
     format_tail(&mut o, s);
-    o
+    wrap(&o, WIDTH)
+}
+
+/// Width of the summaries, in columns.
+pub const WIDTH: usize = 80;
+
+/// Breaks every line of `text` longer than `width` columns at spaces, continuing with
+/// four more spaces of indent than the line began with. A word longer than the width
+/// (a path) stays whole on its own line.
+pub fn wrap(text: &str, width: usize) -> String {
+    let mut out = String::with_capacity(text.len() + text.len() / 16);
+    for line in text.lines() {
+        if line.chars().count() <= width {
+            out.push_str(line);
+            out.push('\n');
+            continue;
+        }
+        let indent = line.len() - line.trim_start().len();
+        let cont = " ".repeat(indent + 4);
+        let mut col = 0;
+        for (k, word) in line.split_whitespace().enumerate() {
+            let len = word.chars().count();
+            if k == 0 {
+                out.push_str(&line[..indent]);
+                col = indent;
+            } else if col + 1 + len > width {
+                out.push('\n');
+                out.push_str(&cont);
+                col = cont.len();
+            } else {
+                out.push(' ');
+                col += 1;
+            }
+            out.push_str(word);
+            col += len;
+        }
+        out.push('\n');
+    }
+    out
 }
 
 /// The lines every bake summary ends with: notes, times, warnings, files.
@@ -855,4 +902,5 @@ fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
         if em > 0.0 { (em - ab) / em } else { 0.0 }
     );
     format_tail(o, s);
+    *o = wrap(o, WIDTH);
 }

@@ -183,3 +183,116 @@ fn a_write_that_fails_midway_leaves_the_previous_folder_whole() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn flags_that_do_nothing_are_refused_before_any_work() {
+    let dir = temp_dir("meaningless");
+    let out = dir.join("out");
+    let out = out.to_str().expect("utf-8");
+    // The folder does not even exist: the refusal comes before it is read.
+    for flag in [
+        &["--estimator", "hemisphere"][..],
+        &["--samples", "5"],
+        &["--tol", "1e-3"],
+        &["--seed", "7"],
+    ] {
+        let mut args = vec!["bake", "cornell", "--factors", "/nonexistent", "-o", out];
+        args.extend_from_slice(flag);
+        refused(
+            &args,
+            &[&format!("{} has no effect with --factors", flag[0])],
+        );
+    }
+    refused(
+        &[
+            "bake",
+            "cornell",
+            "--method",
+            "hierarchical",
+            "--replicates",
+            "8",
+            "-o",
+            out,
+        ],
+        &["--replicates sets the flat form-factor estimator"],
+    );
+    refused(
+        &["bake", "cornell", "--exposure", "-1", "-o", out],
+        &["--exposure `-1`: expected `auto` or a positive number"],
+    );
+    assert!(!dir.join("out").exists());
+    // An I/O cause is printed once, in the message that names the file.
+    let o = radiosity(&["bake", "/nonexistent/scene.obj", "-o", out]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{stderr}");
+    assert_eq!(
+        stderr.matches("No such file or directory").count(),
+        1,
+        "{stderr}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn summaries_fit_80_columns_and_a_reused_matrix_reports_no_ray_rate() {
+    let dir = temp_dir("columns");
+    let factors = dir.join("factors");
+    let f = factors.to_str().expect("utf-8");
+    let made = radiosity(&["factors", "cornell", "--patches", "150", "-o", f]);
+    assert!(
+        made.status.success(),
+        "{}",
+        String::from_utf8_lossy(&made.stderr)
+    );
+    let out = dir.join("bake");
+    let bake = radiosity(&[
+        "bake",
+        "cornell",
+        "--patches",
+        "150",
+        "--size",
+        "32x32",
+        "--factors",
+        f,
+        "-o",
+        out.to_str().expect("utf-8"),
+    ]);
+    assert!(
+        bake.status.success(),
+        "{}",
+        String::from_utf8_lossy(&bake.stderr)
+    );
+    let hier = radiosity(&[
+        "bake",
+        "cornell",
+        "--method",
+        "hierarchical",
+        "--error",
+        "0.05",
+        "--size",
+        "32x32",
+        "-o",
+        dir.join("hier").to_str().expect("utf-8"),
+    ]);
+    assert!(
+        hier.status.success(),
+        "{}",
+        String::from_utf8_lossy(&hier.stderr)
+    );
+    for o in [&made, &bake, &hier] {
+        for line in String::from_utf8_lossy(&o.stdout).lines() {
+            // Only a single word (a path) may be longer.
+            assert!(
+                line.chars().count() <= 80 || !line.trim().contains(' '),
+                "{} columns: {line}",
+                line.chars().count()
+            );
+        }
+    }
+    let text = String::from_utf8_lossy(&bake.stdout);
+    assert!(
+        !text.contains("Mrays/s") && text.contains("read from the stored"),
+        "{text}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -15,6 +15,18 @@ pub const NAMES: &[&str] = &[
     "shelf",
 ];
 
+/// One line on what a built-in scene is and what it is for (`radiosity scenes`).
+pub fn describe(name: &str) -> Option<&'static str> {
+    Some(match name {
+        "cornell" => "the Cornell box, from Cornell's published data (mm)",
+        "plates-perpendicular" => "unit squares at 90° on an edge: F = 0.2000438 (C-14)",
+        "plates-parallel" => "opposed unit squares 1 apart: F = 0.1998249 (C-11)",
+        "cube" => "the closed unit cube facing inward: rows sum to 1",
+        "shelf" => "the notes' infinite shelf (3 strips, L = 33)",
+        _ => return None,
+    })
+}
+
 /// OBJ text and the MTL files it may reference, per built-in scene.
 fn files(name: &str) -> Option<(&'static str, &'static [(&'static str, &'static str)])> {
     const CORNELL_MTL: &[(&str, &str)] =
@@ -57,6 +69,17 @@ pub fn load(name: &str) -> Result<Option<Scene>> {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
+    #[test]
+    fn every_builtin_is_described_in_80_columns() {
+        let width = NAMES.iter().map(|n| n.len()).max().unwrap();
+        for name in NAMES {
+            let d = describe(name).unwrap_or_else(|| panic!("{name}: no description"));
+            assert!(width + 2 + d.chars().count() <= 80, "{name}: {d}");
+        }
+    }
+
     #[test]
     fn all_builtins_load() {
         for name in super::NAMES {

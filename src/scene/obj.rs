@@ -69,6 +69,7 @@ pub fn parse(
 ) -> Result<Scene> {
     let scan = scan_lines(path, text)?;
     let mut materials: Vec<Material> = Vec::new();
+    let mut mtl_warnings = Vec::new();
     for (lib, line) in &scan.mtllibs {
         let (mpath, mtext) = mtl(lib).map_err(|e| match e {
             Error::Io { path: p, source } => Error::Parse {
@@ -87,7 +88,9 @@ pub fn parse(
             },
             other => other,
         })?;
-        for m in parse_mtl(&mpath, &mtext)? {
+        let (read, warnings) = parse_mtl_warning(&mpath, &mtext)?;
+        mtl_warnings.extend(warnings);
+        for m in read {
             if let Some(k) = materials.iter().position(|x| x.name == m.name) {
                 materials[k] = m;
             } else {
@@ -119,7 +122,7 @@ pub fn parse(
         faces: Vec::new(),
         materials,
         camera: scan.camera,
-        warnings: Vec::new(),
+        warnings: mtl_warnings,
     };
     let mut default_material: Option<u32> = None;
     let mut face_no = 0usize;
@@ -327,6 +330,24 @@ fn parse_camera(path: &Path, line: usize, words: &[&str]) -> Result<Camera> {
 
 /// Reads `newmtl`, `Kd` and `Ke` from MTL text, checking ranges with line numbers.
 pub fn parse_mtl(path: &Path, text: &str) -> Result<Vec<Material>> {
+    parse_mtl_warning(path, text).map(|(m, _)| m)
+}
+
+/// MTL statements that change how a surface looks in a renderer but not its diffuse
+/// reflectance or emission, which is all radiosity uses: ignored with a warning.
+const IGNORED_MTL: [&str; 12] = [
+    "map_Kd", "map_Ke", "map_Ka", "map_Ks", "map_Ns", "map_d", "map_Bump", "bump", "norm", "Ks",
+    "Tf", "d",
+];
+
+/// [`parse_mtl`], with the warnings for what it ignores: a material with no `Kd` (it
+/// reflects nothing: black), and the statements of [`IGNORED_MTL`] (once per file and
+/// statement, naming the first line), textures above all: a `map_Kd` material is baked
+/// with its `Kd` colour alone.
+pub fn parse_mtl_warning(path: &Path, text: &str) -> Result<(Vec<Material>, Vec<String>)> {
+    let mut warnings = Vec::new();
+    let mut has_kd: Vec<bool> = Vec::new();
+    let mut ignored: Vec<(&str, usize, usize)> = Vec::new();
     let mut out: Vec<(Material, usize)> = Vec::new();
     for (k, raw) in text.lines().enumerate() {
         let line = k + 1;
@@ -361,6 +382,7 @@ pub fn parse_mtl(path: &Path, text: &str) -> Result<Vec<Material>> {
                     },
                     line,
                 ));
+                has_kd.push(false);
             }
             "Kd" | "Ke" => {
                 let value = rgb(key)?;
@@ -373,6 +395,9 @@ pub fn parse_mtl(path: &Path, text: &str) -> Result<Vec<Material>> {
                 };
                 if key == "Kd" {
                     m.rho = value;
+                    if let Some(k) = has_kd.last_mut() {
+                        *k = true;
+                    }
                 } else {
                     m.emit = value;
                 }
@@ -383,10 +408,42 @@ pub fn parse_mtl(path: &Path, text: &str) -> Result<Vec<Material>> {
                     msg,
                 })?;
             }
-            _ => {}
+            _ => {
+                if let Some(&k) = IGNORED_MTL.iter().find(|&&k| k == key) {
+                    match ignored.iter_mut().find(|(x, _, _)| *x == k) {
+                        Some((_, _, n)) => *n += 1,
+                        None => ignored.push((k, line, 1)),
+                    }
+                }
+            }
         }
     }
-    Ok(out.into_iter().map(|(m, _)| m).collect())
+    for ((m, line), kd) in out.iter().zip(&has_kd) {
+        if !kd && m.emit == [0.0; 3] {
+            warnings.push(format!(
+                "{}:{line}: material `{}` has no `Kd`: it reflects nothing (black)",
+                path.display(),
+                m.name
+            ));
+        }
+    }
+    for (key, line, n) in ignored {
+        let what = if key.starts_with("map_") || matches!(key, "bump" | "norm") {
+            "textures are not baked; the material's `Kd` colour is used"
+        } else {
+            "only `Kd` (diffuse reflectance) and `Ke` (emission) shape radiosity"
+        };
+        let times = if n > 1 {
+            format!(" ({n} lines)")
+        } else {
+            String::new()
+        };
+        warnings.push(format!(
+            "{}:{line}: `{key}` ignored{times}: {what}",
+            path.display()
+        ));
+    }
+    Ok((out.into_iter().map(|(m, _)| m).collect(), warnings))
 }
 
 /// Runs tobj for the geometry alone (materials come from [`Scan`]); when it fails, finds
@@ -597,6 +654,33 @@ mod tests {
             e.contains("m.mtl:2") && e.contains("`x`") && e.contains("[0, 1)"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn ignored_mtl_statements_and_missing_kd_are_warned_once_with_their_line() {
+        let mtl = "newmtl wood\nmap_Kd wood.png\nKd 0.5 0.4 0.3\nnewmtl bare\nd 1\n\
+                   newmtl lamp\nKe 10 10 10\nnewmtl tiles\nKd 0.5 0.5 0.5\nmap_Kd t.png\n";
+        let (m, w) = parse_mtl_warning(Path::new("m.mtl"), mtl).unwrap();
+        assert_eq!(m.len(), 4);
+        assert_eq!(w.len(), 3, "{w:?}");
+        assert!(w
+            .iter()
+            .any(|w| w.contains("m.mtl:4") && w.contains("`bare` has no `Kd`")));
+        assert!(w.iter().any(|w| w.contains("m.mtl:2")
+            && w.contains("`map_Kd` ignored (2 lines)")
+            && w.contains("textures are not baked")));
+        assert!(w
+            .iter()
+            .any(|w| w.contains("m.mtl:5") && w.contains("`d` ignored")));
+        // The emitter without Kd is not warned about; a material with Kd and Ke neither.
+        assert!(!w.iter().any(|w| w.contains("lamp")));
+        // Through the OBJ loader, the warnings reach the scene.
+        let obj = "mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl wood\nf 1 2 3\n";
+        let s = parse("t", Path::new("t.obj"), obj, &|_| {
+            Ok((PathBuf::from("m.mtl"), mtl.to_string()))
+        })
+        .unwrap();
+        assert_eq!(s.warnings.len(), 3, "{:?}", s.warnings);
     }
 
     #[test]
