@@ -35,6 +35,9 @@ enum Command {
     Bake(BakeArgs),
     /// Compute form factors only and store them (Matrix Market, CSV, JSON) for reuse.
     Factors(FactorsArgs),
+    /// Radiative heat transfer between gray surfaces: temperatures, net fluxes and heat
+    /// flows with error bars (patches.csv, surfaces.csv); see docs/THERMAL.md.
+    Thermal(ThermalArgs),
     /// List the built-in scenes.
     Scenes,
     /// Compare every estimator against closed forms: CSV, charts, slopes, calibration.
@@ -364,6 +367,44 @@ struct FactorsArgs {
     factors: FactorArgs,
 }
 
+#[derive(Args, Debug)]
+struct ThermalArgs {
+    /// Built-in scene name or path to an OBJ file (its MTL may give `#@thermal` lines).
+    scene: String,
+    /// Output folder.
+    #[arg(short, long, default_value = "thermal")]
+    output: PathBuf,
+    #[command(flatten)]
+    mesh: MeshArgs,
+    #[command(flatten)]
+    est: FactorArgs,
+    /// Reuse form factors stored by `radiosity factors` (same scene and subdivision): new
+    /// temperatures need no new rays.
+    #[arg(long, value_name = "DIR")]
+    factors: Option<PathBuf>,
+    /// Boundary conditions, CSV `material,emissivity,temperature,flux` (over the MTL's).
+    #[arg(long, value_name = "FILE")]
+    bc: Option<PathBuf>,
+    /// Ambient (environment) temperature in K: radiation leaving the scene reaches a black
+    /// environment at this temperature.
+    #[arg(long, default_value_t = 0.0)]
+    ambient: f64,
+    /// Treat each surface (material) as one zone of uniform radiosity, as the textbook
+    /// closed forms do, instead of solving patch by patch.
+    #[arg(long)]
+    zones: bool,
+    /// Relative residual at which the net-radiation solve stops.
+    #[arg(long, default_value_t = 1e-12)]
+    tolerance: f64,
+    /// Cap on Gauss-Seidel sweeps per solve.
+    #[arg(long, default_value_t = 100_000)]
+    max_iterations: usize,
+    /// Random tangent solves for the per-patch error bars (0: none; surface totals always
+    /// get their exact first-order bars).
+    #[arg(long, default_value_t = 16)]
+    error_replicates: usize,
+}
+
 /// Draws progress bars on a terminal, nothing otherwise.
 struct Bars {
     bar: Mutex<Option<ProgressBar>>,
@@ -442,8 +483,13 @@ fn parse_exposure(s: &str) -> Result<Exposure> {
 /// silently ignored.
 const ESTIMATOR_FLAGS: [&str; 5] = ["estimator", "samples", "rays", "tol", "replicates"];
 
-/// Refuses, before any work, flags that the rest of the command line makes meaningless.
-fn check_meaningless(args: &BakeArgs, m: &clap::ArgMatches) -> Result<()> {
+/// Refuses, before any work, flags that the rest of the command line makes meaningless:
+/// estimator flags with a stored matrix (`factors`) or with the hierarchical method.
+fn check_meaningless(
+    factors: Option<&std::path::Path>,
+    hierarchical: bool,
+    m: &clap::ArgMatches,
+) -> Result<()> {
     use clap::parser::ValueSource;
     let given = |id: &str| {
         matches!(
@@ -451,7 +497,7 @@ fn check_meaningless(args: &BakeArgs, m: &clap::ArgMatches) -> Result<()> {
             Ok(Some(ValueSource::CommandLine))
         )
     };
-    if let Some(dir) = &args.factors {
+    if let Some(dir) = factors {
         for id in ESTIMATOR_FLAGS.iter().chain(&["seed"]) {
             if given(id) {
                 bail!(
@@ -462,14 +508,14 @@ fn check_meaningless(args: &BakeArgs, m: &clap::ArgMatches) -> Result<()> {
                 );
             }
         }
-        if args.hier.method == MethodArg::Hierarchical {
+        if hierarchical {
             bail!(
                 "--factors stores a flat matrix; --method hierarchical computes its own \
                  links (drop one of them)"
             );
         }
     }
-    if args.hier.method == MethodArg::Hierarchical {
+    if hierarchical {
         for id in ESTIMATOR_FLAGS {
             if given(id) {
                 bail!(
@@ -568,6 +614,57 @@ fn bake(args: &BakeArgs) -> Result<()> {
     Ok(())
 }
 
+fn thermal(args: &ThermalArgs) -> Result<()> {
+    args.est.init_threads()?;
+    if !(args.tolerance > 0.0 && args.tolerance < 1.0) {
+        bail!("--tolerance must be in (0, 1), got {}", args.tolerance);
+    }
+    if !(1..=MAX_ITERATIONS).contains(&args.max_iterations) {
+        bail!(
+            "--max-iterations must be between 1 and {MAX_ITERATIONS}, got {}",
+            args.max_iterations
+        );
+    }
+    if args.error_replicates > MAX_REPLICATES {
+        bail!(
+            "--error-replicates must be at most {MAX_REPLICATES}, got {}",
+            args.error_replicates
+        );
+    }
+    if !(args.ambient.is_finite() && args.ambient >= 0.0) {
+        bail!(
+            "--ambient must be a temperature in K (>= 0), got {}",
+            args.ambient
+        );
+    }
+    let cfg = pipeline::ThermalConfig {
+        scene: args.scene.clone(),
+        out_dir: args.output.clone(),
+        resolution: args.mesh.resolution()?,
+        estimator: args.est.choice()?,
+        seed: args.est.seed,
+        factors: args.factors.clone(),
+        bc: args.bc.clone(),
+        ambient: args.ambient,
+        zones: args.zones,
+        settings: radiosity::thermal::Settings {
+            tolerance: args.tolerance,
+            max_iterations: args.max_iterations,
+            replicates: args.error_replicates,
+            seed: args.est.seed,
+        },
+        repair: args.est.repair,
+        max_memory: args.est.max_memory,
+    };
+    let bars = Bars {
+        bar: Mutex::new(None),
+        tty: std::io::stderr().is_terminal(),
+    };
+    let summary = pipeline::thermal(&cfg, &bars)?;
+    print!("{}", pipeline::format_thermal_summary(&summary));
+    Ok(())
+}
+
 fn study_bakes(args: &StudyBakesArgs) -> Result<()> {
     use radiosity::study::bakes;
     let settings = bakes::Settings {
@@ -643,9 +740,16 @@ pub fn run() -> Result<()> {
     match &cli.command {
         Command::Bake(args) => {
             if let Some(("bake", m)) = matches.subcommand() {
-                check_meaningless(args, m)?;
+                let hierarchical = args.hier.method == MethodArg::Hierarchical;
+                check_meaningless(args.factors.as_deref(), hierarchical, m)?;
             }
             bake(args)
+        }
+        Command::Thermal(args) => {
+            if let Some(("thermal", m)) = matches.subcommand() {
+                check_meaningless(args.factors.as_deref(), false, m)?;
+            }
+            thermal(args)
         }
         Command::Factors(args) => {
             args.factors.init_threads()?;

@@ -12,11 +12,15 @@
 //! refined where the light needs them, solved on the tree ([`hierarchy`], over
 //! [`visibility`] and the exact integral of [`formfactor::exact`]) → the leaves as a
 //! crack-free mesh → the same per-vertex values and files.
+//! The thermal mode ([`thermal`]) takes the same `FormFactors` with per-material
+//! emissivities and temperatures or net fluxes, and solves the net-radiation method for
+//! radiosity, irradiation, net heat flux and temperature, with propagated error bars.
 //!
 //! ## No import cycles
 //! The modules form an acyclic graph: a module refers only to modules upstream of it
 //! (`error`, `input`, `budget`, `scene`, `mesh`, `sampling`, `simd`, `visibility`,
-//! `analytic`, `matrix`, `formfactor`, `hierarchy`, `repair`, `solve`, `output`, `store`, `pipeline`,
+//! `analytic`, `matrix`, `formfactor`, `hierarchy`, `repair`, `solve`, `thermal`, `output`, `store`,
+//! `pipeline`,
 //! then the consumers `study` and `bench`). The test `tests::module_graph_is_acyclic` at
 //! the bottom of this file checks it: it reads every file under `src/`, takes each
 //! `crate::MODULE` path in the code before the file's `#[cfg(test)]` (comments and doc
@@ -50,6 +54,7 @@ pub mod simd;
 pub mod solve;
 pub mod store;
 pub mod study;
+pub mod thermal;
 pub mod visibility;
 
 pub use error::{Error, Result};

@@ -904,3 +904,410 @@ fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
     format_tail(o, s);
     *o = wrap(o, WIDTH);
 }
+
+/// Everything a thermal run needs, resolved ([`thermal`]).
+#[derive(Clone, Debug)]
+pub struct ThermalConfig {
+    /// Built-in scene name or OBJ path (its MTL may carry `#@thermal` lines).
+    pub scene: String,
+    /// Output folder.
+    pub out_dir: PathBuf,
+    /// Patch resolution.
+    pub resolution: Resolution,
+    /// Form-factor estimator (unused with `factors`).
+    pub estimator: EstimatorChoice,
+    /// Seed of the form factors' random streams and of the error-bar replicates.
+    pub seed: u64,
+    /// Reuse the form factors stored in this folder instead of casting rays.
+    pub factors: Option<PathBuf>,
+    /// Boundary-conditions file ([`crate::thermal::bc`]), applied over the MTL's.
+    pub bc: Option<PathBuf>,
+    /// Ambient (environment) temperature, K.
+    pub ambient: f64,
+    /// Solve with each surface (material) as one zone of uniform radiosity
+    /// ([`crate::thermal::lump`]) instead of patch by patch.
+    pub zones: bool,
+    /// Solver and error-bar settings.
+    pub settings: crate::thermal::Settings,
+    /// Physical constraints to restore in the form factors before solving.
+    pub repair: Repair,
+    /// Memory the run may plan to use, in bytes.
+    pub max_memory: Option<u64>,
+}
+
+impl Default for ThermalConfig {
+    fn default() -> Self {
+        let b = BakeConfig::default();
+        ThermalConfig {
+            scene: b.scene,
+            out_dir: PathBuf::from("thermal"),
+            resolution: b.resolution,
+            estimator: b.estimator,
+            seed: b.seed,
+            factors: None,
+            bc: None,
+            ambient: 0.0,
+            zones: false,
+            settings: crate::thermal::Settings::default(),
+            repair: Repair::None,
+            max_memory: None,
+        }
+    }
+}
+
+/// One surface of a thermal run, for the summary.
+#[derive(Clone, Debug)]
+pub struct ThermalSurface {
+    /// Name, emissivity, condition, patches.
+    pub info: output::thermal::SurfaceInfo,
+    /// Results with their error bars.
+    pub result: crate::thermal::SurfaceResult,
+}
+
+/// What a thermal run did.
+#[derive(Clone, Debug)]
+pub struct ThermalSummary {
+    /// Scene name.
+    pub scene: String,
+    /// Patches.
+    pub patches: usize,
+    /// Unknowns of the solve (patches, or surfaces with `zones`).
+    pub unknowns: usize,
+    /// Estimator name (or that of the stored folder).
+    pub estimator: String,
+    /// Rays cast for form factors (0 when read from a folder).
+    pub rays: u64,
+    /// Form-factor diagnostics.
+    pub diagnostics: Diagnostics,
+    /// Bounds found and the repair applied.
+    pub repair: RepairReport,
+    /// Per surface (material), in material order.
+    pub surfaces: Vec<ThermalSurface>,
+    /// Every surface together.
+    pub total: crate::thermal::SurfaceResult,
+    /// Net power to the environment and its standard error, W.
+    pub to_environment: (f64, f64),
+    /// Ambient temperature, K.
+    pub ambient: f64,
+    /// Gauss–Seidel sweeps and final relative residual of the main solve.
+    pub solve: (usize, f64),
+    /// Largest |q| on adiabatic (flux 0) patches, W/m², when there are any.
+    pub adiabatic_max_q: Option<f64>,
+    /// Notes of the solve.
+    pub notes: Vec<String>,
+    /// Time per stage.
+    pub stages: Vec<StageTime>,
+    /// Peak resident memory in bytes.
+    pub peak_memory: u64,
+    /// Files written.
+    pub files: Vec<PathBuf>,
+    /// Loader warnings.
+    pub warnings: Vec<String>,
+}
+
+/// Loads a scene for the thermal mode: the MTL's `#@thermal` lines, then the
+/// boundary-conditions file over them; every material a face uses must end with thermal
+/// properties ([`crate::thermal::bc::require`]).
+pub fn thermal_scene(scene: &str, bc: Option<&Path>) -> Result<Scene> {
+    let mut s = Scene::load(scene)?;
+    if let Some(path) = bc {
+        let rows = crate::thermal::bc::read(path)?;
+        crate::thermal::bc::apply(&mut s, path, &rows)?;
+    }
+    crate::thermal::bc::require(&s)?;
+    Ok(s)
+}
+
+/// Runs the thermal mode: load (with boundary conditions), mesh, form factors (computed or
+/// read from a folder), repair, the net-radiation solve with error bars
+/// ([`crate::thermal`]), and `patches.csv` and `surfaces.csv` written whole into `out_dir`.
+/// Every setting and input is checked before the form factors.
+pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary> {
+    use crate::thermal::{self as th, Problem};
+    let mut timer = Timer {
+        obs,
+        stages: Vec::new(),
+    };
+    output::check_folder(&cfg.out_dir, FolderKind::Thermal)?;
+    if !(cfg.ambient.is_finite() && (0.0..=crate::scene::MAX_TEMPERATURE).contains(&cfg.ambient)) {
+        return Err(Error::Config(format!(
+            "ambient temperature {} K is outside [0, {:e}] K",
+            cfg.ambient,
+            crate::scene::MAX_TEMPERATURE
+        )));
+    }
+    let s = &cfg.settings;
+    if !(s.tolerance.is_finite() && s.tolerance > 0.0 && s.tolerance < 1.0) {
+        return Err(Error::Config(format!(
+            "thermal tolerance {} is not in (0, 1)",
+            s.tolerance
+        )));
+    }
+    let scene = timer.run("load", 0, || thermal_scene(&cfg.scene, cfg.bc.as_deref()))?;
+    check_budget(
+        &scene,
+        cfg.resolution,
+        cfg.factors.is_none().then_some(&cfg.estimator),
+        None,
+        None,
+        cfg.max_memory,
+    )?;
+    let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
+        let p = PatchSet::build(&scene, cfg.resolution)?;
+        p.validate()?;
+        Ok(p)
+    })?;
+    let (ff, _) = match &cfg.factors {
+        Some(dir) => (
+            timer.run("read factors", 0, || store::read(dir, &patches))?,
+            (),
+        ),
+        None => {
+            let (ff, stages, _) = form_factors(&patches, &cfg.estimator, cfg.seed, obs)?;
+            timer.stages.extend(stages);
+            (ff, ())
+        }
+    };
+    let (ff, repair_report) = timer.run("repair", 0, || repair::apply(ff, cfg.repair));
+    let diagnostics = timer.run("diagnostics", 0, || ff.diagnostics());
+    // Surfaces: the materials the patches use, in material order.
+    let used: Vec<usize> = (0..patches.materials.len())
+        .filter(|&m| patches.material.iter().any(|&k| k as usize == m))
+        .collect();
+    let surface_of: Vec<u32> = patches
+        .material
+        .iter()
+        .map(|&m| used.iter().position(|&u| u == m as usize).unwrap_or(0) as u32)
+        .collect();
+    let thermal_of = |m: usize| {
+        patches.materials[m].thermal.ok_or_else(|| Error::Scene {
+            scene: scene.source.clone(),
+            msg: format!(
+                "material `{}` has no thermal properties",
+                patches.materials[m].name
+            ),
+        })
+    };
+    let infos: Vec<output::thermal::SurfaceInfo> = used
+        .iter()
+        .map(|&m| {
+            let t = thermal_of(m)?;
+            Ok(output::thermal::SurfaceInfo {
+                name: patches.materials[m].name.clone(),
+                patches: patches
+                    .material
+                    .iter()
+                    .filter(|&&k| k as usize == m)
+                    .count(),
+                emissivity: t.emissivity,
+                boundary: t.boundary,
+            })
+        })
+        .collect::<Result<_>>()?;
+    let groups = infos.len();
+    let settings = th::Settings {
+        seed: cfg.seed,
+        ..cfg.settings
+    };
+    let ((sol, results, problem_patch), unknowns) = timer.run("thermal solve", 0, || {
+        // Per-patch arrays.
+        let eps: Vec<f64> = surface_of
+            .iter()
+            .map(|&s| infos[s as usize].emissivity)
+            .collect();
+        let bc: Vec<_> = surface_of
+            .iter()
+            .map(|&s| infos[s as usize].boundary)
+            .collect();
+        if cfg.zones {
+            let (zf, zse, za) = th::lump(&ff.f, &ff.se, &ff.area, &surface_of, groups)?;
+            let zeps: Vec<f64> = infos.iter().map(|s| s.emissivity).collect();
+            let zbc: Vec<_> = infos.iter().map(|s| s.boundary).collect();
+            let zp = Problem {
+                f: &zf,
+                se: &zse,
+                area: &za,
+                emissivity: &zeps,
+                boundary: &zbc,
+                ambient: cfg.ambient,
+            };
+            let zsol = th::solve(&zp, &settings)?;
+            let ids: Vec<u32> = (0..groups as u32).collect();
+            let results = th::surfaces(&zp, &zsol, &ids, groups, &settings)?;
+            // Every patch carries its zone's values.
+            let sol = zsol.spread(&surface_of);
+            Ok::<_, Error>(((sol, results, (eps, bc)), groups))
+        } else {
+            let p = Problem {
+                f: &ff.f,
+                se: &ff.se,
+                area: &ff.area,
+                emissivity: &eps,
+                boundary: &bc,
+                ambient: cfg.ambient,
+            };
+            let sol = th::solve(&p, &settings)?;
+            let results = th::surfaces(&p, &sol, &surface_of, groups, &settings)?;
+            Ok(((sol, results, (eps, bc)), patches.len()))
+        }
+    })?;
+    let (eps, bc) = problem_patch;
+    let adiabatic_max_q = bc
+        .iter()
+        .zip(&sol.q)
+        .filter(|(b, _)| matches!(b, crate::scene::Boundary::Flux(q) if *q == 0.0))
+        .map(|(_, q)| q.abs())
+        .reduce(f64::max);
+    let names: Vec<String> = infos.iter().map(|s| s.name.clone()).collect();
+    let files = timer.run("write", 0, || {
+        output::write_folder(&cfg.out_dir, FolderKind::Thermal, |dir| {
+            let p = Problem {
+                f: &ff.f,
+                se: &ff.se,
+                area: &ff.area,
+                emissivity: &eps,
+                boundary: &bc,
+                ambient: cfg.ambient,
+            };
+            output::thermal::write_patches(
+                &dir.join("patches.csv"),
+                &p,
+                &sol,
+                &surface_of,
+                &names,
+            )?;
+            output::thermal::write_surfaces(&dir.join("surfaces.csv"), &infos, &results, &sol)?;
+            Ok(vec![
+                cfg.out_dir.join("patches.csv"),
+                cfg.out_dir.join("surfaces.csv"),
+            ])
+        })
+    })?;
+    let total = results.get(groups).copied().unwrap_or_default();
+    Ok(ThermalSummary {
+        scene: scene.name.clone(),
+        patches: patches.len(),
+        unknowns,
+        estimator: ff.estimator.clone(),
+        rays: ff.rays,
+        diagnostics,
+        repair: repair_report,
+        surfaces: infos
+            .into_iter()
+            .zip(results)
+            .map(|(info, result)| ThermalSurface { info, result })
+            .collect(),
+        total,
+        to_environment: (sol.to_environment, sol.se_to_environment),
+        ambient: cfg.ambient,
+        solve: (sol.iterations, sol.residual),
+        adiabatic_max_q,
+        notes: sol.notes.clone(),
+        stages: timer.stages,
+        peak_memory: peak_memory(),
+        files,
+        warnings: scene.warnings.clone(),
+    })
+}
+
+/// The one-screen summary of a thermal run: per surface `T`, `q`, `Q` with their error
+/// bars, and the energy balance.
+pub fn format_thermal_summary(s: &ThermalSummary) -> String {
+    use std::fmt::Write;
+    let mut o = String::new();
+    let _ = writeln!(
+        o,
+        "thermal `{}`: {} patches, {} unknowns ({}), ambient {} K",
+        s.scene,
+        s.patches,
+        s.unknowns,
+        if s.unknowns == s.patches {
+            "patch by patch"
+        } else {
+            "one zone per surface"
+        },
+        s.ambient
+    );
+    let d = &s.diagnostics;
+    let _ = writeln!(
+        o,
+        "form factors: {} ({} rays); row sums in [{:.6}, {:.6}]; bounds: {}",
+        s.estimator,
+        s.rays,
+        d.min_row_sum.max(0.0),
+        d.max_row_sum,
+        s.repair.before.summary()
+    );
+    if s.repair.repair != Repair::None {
+        let _ = writeln!(
+            o,
+            "  repair {:?}: entries moved by <= {:.2} standard errors",
+            s.repair.repair, s.repair.max_shift_sigmas
+        );
+    }
+    let _ = writeln!(
+        o,
+        "solve: net-radiation Gauss-Seidel, {} sweeps, relative residual {:.1e}",
+        s.solve.0, s.solve.1
+    );
+    let _ = writeln!(
+        o,
+        "{:<12} {:>4} {:>18} {:>20} {:>21}",
+        "surface", "eps", "T (K)", "q (W/m2)", "Q (W)"
+    );
+    for x in &s.surfaces {
+        let r = &x.result;
+        let t = match x.info.boundary {
+            crate::scene::Boundary::Temperature(t) => format!("{t} (given)"),
+            _ => format!("{:.4} ± {:.1e}", r.t, r.se_t),
+        };
+        let q = match x.info.boundary {
+            crate::scene::Boundary::Flux(q) => format!("{q} (given)"),
+            _ => format!("{:.6e} ± {:.1e}", r.flow.q / r.area, r.flow.se / r.area),
+        };
+        let _ = writeln!(
+            o,
+            "{:<12} {:>4} {:>18} {:>20} {:>21}",
+            x.info.name,
+            x.info.emissivity,
+            t,
+            q,
+            format!("{:.6e} ± {:.1e}", r.flow.q, r.flow.se)
+        );
+    }
+    let scale = s
+        .surfaces
+        .iter()
+        .map(|x| x.result.flow.q.abs())
+        .fold(0.0, f64::max);
+    let _ = writeln!(
+        o,
+        "energy balance: sum of Q = {:.6e} ± {:.1e} W ({:+.1e} of the largest |Q|); to the \
+         environment {:.6e} ± {:.1e} W",
+        s.total.flow.q,
+        s.total.flow.se,
+        if scale > 0.0 {
+            s.total.flow.q / scale
+        } else {
+            0.0
+        },
+        s.to_environment.0,
+        s.to_environment.1
+    );
+    if let Some(q) = s.adiabatic_max_q {
+        let _ = writeln!(o, "adiabatic patches: largest |q| {q:.1e} W/m2");
+    }
+    for n in &s.notes {
+        let _ = writeln!(o, "note: {n}");
+    }
+    let _ = writeln!(o, "{}", format_times(&s.stages, s.peak_memory));
+    for w in &s.warnings {
+        let _ = writeln!(o, "warning: {w}");
+    }
+    let _ = write!(o, "wrote:");
+    for f in &s.files {
+        let _ = write!(o, " {}", f.display());
+    }
+    o.push('\n');
+    wrap(&o, WIDTH)
+}

@@ -43,6 +43,8 @@ pub enum FolderKind {
     Bake,
     /// A factors folder: `F.mtx`, `stderr.mtx`, `patches.csv`, `provenance.json`.
     Factors,
+    /// A thermal solution: `patches.csv`, `surfaces.csv`.
+    Thermal,
 }
 
 impl FolderKind {
@@ -62,6 +64,8 @@ impl FolderKind {
                 name,
                 "F.mtx" | "stderr.mtx" | "patches.csv" | "provenance.json"
             ),
+            // Written with a manifest from the start.
+            FolderKind::Thermal => false,
         }
     }
 }
@@ -213,6 +217,7 @@ fn kind_name(kind: FolderKind) -> &'static str {
     match kind {
         FolderKind::Bake => "bake",
         FolderKind::Factors => "factors run",
+        FolderKind::Thermal => "thermal run",
     }
 }
 

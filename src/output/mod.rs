@@ -10,7 +10,8 @@
 //! - [`ply`]: the same mesh as a binary PLY with vertex colours, for Blender or MeshLab
 //!   ([`write_ply`]);
 //! - [`preview`]: a small software rasterizer that renders the bake from the scene's camera
-//!   into an 8-bit sRGB image ([`render_preview`], [`write_png`]).
+//!   into an 8-bit sRGB image ([`render_preview`], [`write_png`]);
+//! - [`thermal`]: the thermal mode's per-patch and per-surface tables as CSV.
 //!
 //! Every writer goes through [`write_atomic`]: a file is either written whole or not at
 //! all, so an interrupted run never leaves a truncated bake that looks valid. A run's files
@@ -22,6 +23,7 @@ pub mod exr;
 pub mod folder;
 pub mod ply;
 pub mod preview;
+pub mod thermal;
 pub mod vertex;
 
 use std::path::{Path, PathBuf};

@@ -503,6 +503,7 @@ pub(crate) mod testing {
                     name: format!("m{m}"),
                     rho: [0.5; 3],
                     emit: [0.0; 3],
+                    thermal: None,
                 })
                 .collect(),
             ..Default::default()

@@ -28,6 +28,67 @@ pub struct Material {
     pub rho: [f64; 3],
     /// Emitted exitance per channel (radiosity units), >= 0.
     pub emit: [f64; 3],
+    /// Gray emissivity and boundary condition of the thermal mode (MTL `#@thermal`, or a
+    /// boundary-conditions file); `None` when the material has none. The visible-light
+    /// bake ignores it.
+    pub thermal: Option<Thermal>,
+}
+
+/// Upper bound on a boundary temperature, K (far above any gray-surface problem; keeps
+/// `sigma T^4` and its sums far from overflow).
+pub const MAX_TEMPERATURE: f64 = 1e6;
+
+/// Upper bound on the magnitude of a boundary net flux, W/m².
+pub const MAX_FLUX: f64 = 1e15;
+
+/// The boundary condition of a surface in the thermal mode.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Boundary {
+    /// A given temperature, K.
+    Temperature(f64),
+    /// A given net radiative flux leaving the surface, W/m² (`q = J - G`; 0 is an adiabatic,
+    /// re-radiating surface).
+    Flux(f64),
+}
+
+/// Thermal properties of an opaque gray diffuse surface: emissivity `eps` in (0, 1], so
+/// that by Kirchhoff's law the absorptance is `eps` and the reflectance `1 - eps`
+/// (radiosidade.md, "Emissividade", "Lei de Kirchhoff"; Modest, *Radiative Heat Transfer*,
+/// 3rd ed., sec. 1.6 and 6.2), and its boundary condition.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Thermal {
+    /// Hemispherical total emissivity, in (0, 1].
+    pub emissivity: f64,
+    /// Given temperature or net flux.
+    pub boundary: Boundary,
+}
+
+impl Thermal {
+    /// Checks the ranges: `eps` in (0, 1], a temperature in `[0, MAX_TEMPERATURE]`, a
+    /// finite flux of magnitude at most [`MAX_FLUX`]. Returns what is wrong, for the
+    /// caller to wrap with the file and line.
+    pub fn validate(&self) -> std::result::Result<(), String> {
+        let e = self.emissivity;
+        if !(e.is_finite() && e > 0.0 && e <= 1.0) {
+            return Err(format!(
+                "emissivity {e} is outside (0, 1] (a gray opaque surface absorbs eps and \
+                 reflects 1 - eps; eps = 0 would leave its temperature undefined)"
+            ));
+        }
+        match self.boundary {
+            Boundary::Temperature(t)
+                if !(t.is_finite() && (0.0..=MAX_TEMPERATURE).contains(&t)) =>
+            {
+                Err(format!(
+                    "temperature {t} K is outside [0, {MAX_TEMPERATURE:e}] K"
+                ))
+            }
+            Boundary::Flux(q) if !(q.is_finite() && q.abs() <= MAX_FLUX) => Err(format!(
+                "net flux {q} W/m^2 is not a finite number of magnitude at most {MAX_FLUX:e}"
+            )),
+            _ => Ok(()),
+        }
+    }
 }
 
 impl Material {
@@ -212,6 +273,7 @@ impl Scene {
             name: name.to_string(),
             rho,
             emit,
+            thermal: self.materials[k].thermal,
         };
         m.validate().map_err(|msg| Error::Material {
             path: self.source.clone().into(),

@@ -14,7 +14,9 @@
 //!   one that is not simple (self-intersecting, touching itself) refused with its line.
 //!
 //! A comment line `#@camera eye X Y Z target X Y Z up X Y Z fov DEGREES` sets the
-//! preview camera.
+//! preview camera. In the MTL, a comment line `#@thermal emissivity E temperature K` or
+//! `#@thermal emissivity E flux W_PER_M2` after a `newmtl` gives that material's gray
+//! emissivity and boundary condition for the thermal mode ([`crate::scene::Thermal`]).
 
 use std::collections::HashMap;
 use std::io::BufReader;
@@ -23,7 +25,7 @@ use std::path::{Path, PathBuf};
 use glam::{DVec3, Vec3};
 
 use super::polygon::{self, newell};
-use super::{Camera, Face, Material, Scene};
+use super::{Boundary, Camera, Face, Material, Scene, Thermal};
 use crate::error::{Error, Result};
 use crate::input::{read_text, MAX_TEXT_BYTES};
 
@@ -161,6 +163,7 @@ pub fn parse(
                         name: "(none)".into(),
                         rho: [DEFAULT_RHO; 3],
                         emit: [0.0; 3],
+                        thermal: None,
                     });
                     scene.warnings.push(format!(
                         "faces without a material get a grey default with rho = {DEFAULT_RHO}"
@@ -328,7 +331,50 @@ fn parse_camera(path: &Path, line: usize, words: &[&str]) -> Result<Camera> {
     })
 }
 
-/// Reads `newmtl`, `Kd` and `Ke` from MTL text, checking ranges with line numbers.
+/// Parses the words after `#@thermal`: `emissivity E` and exactly one of
+/// `temperature K` or `flux W_PER_M2`, in any order.
+pub fn parse_thermal(path: &Path, line: usize, words: &[&str]) -> Result<Thermal> {
+    let bad = |msg: String| Error::Parse {
+        path: path.to_path_buf(),
+        line: Some(line),
+        msg: format!(
+            "#@thermal: {msg} (expected `#@thermal emissivity E temperature K` or \
+             `#@thermal emissivity E flux W_PER_M2`)"
+        ),
+    };
+    let (mut eps, mut temperature, mut flux) = (None, None, None);
+    let mut k = 0;
+    while k < words.len() {
+        let key = words[k];
+        let slot = match key {
+            "emissivity" => &mut eps,
+            "temperature" => &mut temperature,
+            "flux" => &mut flux,
+            _ => return Err(bad(format!("unknown key `{key}`"))),
+        };
+        if slot.is_some() {
+            return Err(bad(format!("`{key}` given twice")));
+        }
+        let v = parse_floats(path, line, key, &words[(k + 1).min(words.len())..], 1)?;
+        *slot = Some(v[0]);
+        k += 2;
+    }
+    let emissivity = eps.ok_or_else(|| bad("missing `emissivity`".into()))?;
+    let boundary = match (temperature, flux) {
+        (Some(t), None) => Boundary::Temperature(t),
+        (None, Some(q)) => Boundary::Flux(q),
+        (Some(_), Some(_)) => return Err(bad("give a temperature or a flux, not both".into())),
+        (None, None) => return Err(bad("missing `temperature` or `flux`".into())),
+    };
+    Ok(Thermal {
+        emissivity,
+        boundary,
+    })
+}
+
+/// Reads `newmtl`, `Kd` and `Ke` from MTL text, checking ranges with line numbers, and the
+/// thermal extension `#@thermal emissivity E temperature K | flux W_PER_M2` (a comment to
+/// every other MTL reader; see [`parse_thermal`]).
 pub fn parse_mtl(path: &Path, text: &str) -> Result<Vec<Material>> {
     parse_mtl_warning(path, text).map(|(m, _)| m)
 }
@@ -379,6 +425,7 @@ pub fn parse_mtl_warning(path: &Path, text: &str) -> Result<(Vec<Material>, Vec<
                         name,
                         rho: [0.0; 3],
                         emit: [0.0; 3],
+                        thermal: None,
                     },
                     line,
                 ));
@@ -408,6 +455,23 @@ pub fn parse_mtl_warning(path: &Path, text: &str) -> Result<(Vec<Material>, Vec<
                     msg,
                 })?;
             }
+            "#@thermal" => {
+                let Some((m, _)) = out.last_mut() else {
+                    return Err(Error::Parse {
+                        path: path.to_path_buf(),
+                        line: Some(line),
+                        msg: "`#@thermal` before any `newmtl`".into(),
+                    });
+                };
+                let t = parse_thermal(path, line, rest)?;
+                t.validate().map_err(|msg| Error::Material {
+                    path: path.to_path_buf(),
+                    line: Some(line),
+                    material: m.name.clone(),
+                    msg,
+                })?;
+                m.thermal = Some(t);
+            }
             _ => {
                 if let Some(&k) = IGNORED_MTL.iter().find(|&&k| k == key) {
                     match ignored.iter_mut().find(|(x, _, _)| *x == k) {
@@ -419,7 +483,7 @@ pub fn parse_mtl_warning(path: &Path, text: &str) -> Result<(Vec<Material>, Vec<
         }
     }
     for ((m, line), kd) in out.iter().zip(&has_kd) {
-        if !kd && m.emit == [0.0; 3] {
+        if !kd && m.emit == [0.0; 3] && m.thermal.is_none() {
             warnings.push(format!(
                 "{}:{line}: material `{}` has no `Kd`: it reflects nothing (black)",
                 path.display(),

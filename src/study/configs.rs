@@ -113,6 +113,7 @@ fn scene(name: &str, quads: &[(DVec3, DVec3, DVec3)]) -> Scene {
             name: "white".into(),
             rho: [0.5; 3],
             emit: [1.0; 3],
+            thermal: None,
         }],
         camera: None,
         warnings: Vec::new(),
