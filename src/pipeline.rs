@@ -301,6 +301,25 @@ pub fn check_budget(
     budget::check(&estimate(patches), max_memory, estimate)
 }
 
+/// Share of the patches that may see nothing before a bake warns about normals.
+const BLIND_SHARE: f64 = 0.1;
+
+/// A warning, with the likely cause and its fix, when at least [`BLIND_SHARE`] of the
+/// `n` patches see nothing (`empty` rows): surfaces emit and receive only on the side their
+/// counter-clockwise winding faces, and a closed room modelled as a box with normals out
+/// (Blender's default cube) sees nothing from inside.
+fn blind_warning(empty: usize, n: usize) -> Option<String> {
+    (empty > 0 && empty as f64 >= BLIND_SHARE * n as f64).then(|| {
+        format!(
+            "{empty} of {n} patches ({:.0}%) see nothing: their fronts face away from the \
+             rest of the scene. Faces emit and receive only on the side their \
+             counter-clockwise winding faces; if walls were modelled with normals pointing \
+             out of the room, flip them (Blender: Mesh > Normals > Flip, then export again)",
+            100.0 * empty as f64 / n as f64
+        )
+    })
+}
+
 /// Refuses stored factors with a row over 1 by more than its bar allows
 /// ([`FormFactors::row_over_one_beyond_chance`]), unless `repair` restores the row sums.
 fn check_rows(dir: &Path, ff: &FormFactors, repair: Repair) -> Result<()> {
@@ -531,7 +550,12 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         stages: timer.stages,
         peak_memory: peak_memory(),
         files,
-        warnings: scene.warnings.clone(),
+        warnings: scene
+            .warnings
+            .iter()
+            .cloned()
+            .chain(blind_warning(diagnostics.empty_rows, patches.len()))
+            .collect(),
         embree,
         hierarchy: None,
     })

@@ -81,3 +81,51 @@ fn exr_round_trips_bit_for_bit() {
     assert_eq!(back.rgb, verts.rgb);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_room_with_outward_normals_is_warned_about_with_the_fix() {
+    let dir = temp_dir("outward");
+    std::fs::create_dir_all(&dir).expect("dir");
+    // A unit box whose six faces wind outward (as Blender's default cube), and a small
+    // lamp inside facing down: from inside, nothing is seen.
+    let obj = "mtllib m.mtl\n\
+        v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nv 1 0 1\nv 1 1 1\nv 0 1 1\n\
+        v 0.4 0.9 0.4\nv 0.6 0.9 0.4\nv 0.6 0.9 0.6\nv 0.4 0.9 0.6\n\
+        usemtl wall\n\
+        f 1 4 3 2\nf 5 6 7 8\nf 1 2 6 5\nf 4 8 7 3\nf 1 5 8 4\nf 2 3 7 6\n\
+        usemtl lamp\nf 9 10 11 12\n";
+    std::fs::write(dir.join("room.obj"), obj).expect("obj");
+    std::fs::write(
+        dir.join("m.mtl"),
+        "newmtl wall\nKd 0.5 0.5 0.5\nnewmtl lamp\nKe 1 1 1\n",
+    )
+    .expect("mtl");
+    let cfg = BakeConfig {
+        scene: dir.join("room.obj").to_string_lossy().into_owned(),
+        out_dir: dir.join("out"),
+        resolution: Resolution::Patches(200),
+        preview: (16, 16),
+        ..BakeConfig::default()
+    };
+    let s = pipeline::bake(&cfg, &Quiet).expect("bake");
+    assert!(
+        s.warnings
+            .iter()
+            .any(|w| w.contains("see nothing") && w.contains("flip them")),
+        "{:?}",
+        s.warnings
+    );
+    // The same box winding inward: no such warning.
+    let inward = obj.replace(
+        "f 1 4 3 2\nf 5 6 7 8\nf 1 2 6 5\nf 4 8 7 3\nf 1 5 8 4\nf 2 3 7 6\n",
+        "f 2 3 4 1\nf 8 7 6 5\nf 5 6 2 1\nf 3 7 8 4\nf 4 8 5 1\nf 6 7 3 2\n",
+    );
+    std::fs::write(dir.join("room.obj"), inward).expect("obj");
+    let s = pipeline::bake(&cfg, &Quiet).expect("bake");
+    assert!(
+        !s.warnings.iter().any(|w| w.contains("see nothing")),
+        "{:?}",
+        s.warnings
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
