@@ -12,3 +12,4 @@ mod shelf;
 mod stability;
 mod store;
 mod study;
+mod suite;
