@@ -50,6 +50,90 @@ enum Command {
     StudyBakes(StudyBakesArgs),
     /// Measure: form-factor stage vs raw Embree rays/s, time and memory per stage, scaling.
     Bench(BenchArgs),
+    /// The benchmark suite: cases with exact answers, a scorer, a leaderboard.
+    #[command(subcommand)]
+    Suite(SuiteCommand),
+}
+
+#[derive(Subcommand, Debug)]
+enum SuiteCommand {
+    /// Write every case as OBJ/MTL and the table of exact values (suite.json, suite.csv).
+    Export {
+        /// Output folder.
+        dir: PathBuf,
+    },
+    /// Compute this program's answers: one factors folder per case, for `suite score --factors`.
+    Run(SuiteRunArgs),
+    /// Score a program's answers against the exact values.
+    Score(SuiteScoreArgs),
+    /// Put several scores (JSON from `suite score --json`) on one board: BASE.md, BASE.svg, BASE.png.
+    Board {
+        /// Output path without extension.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Score files.
+        #[arg(required = true)]
+        scores: Vec<PathBuf>,
+    },
+}
+
+#[derive(Args, Debug)]
+struct SuiteRunArgs {
+    /// The exported suite (folder with suite.json).
+    #[arg(long, default_value = "suite")]
+    suite: PathBuf,
+    /// Output folder (one factors folder per case).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Only these cases (comma-separated).
+    #[arg(long, value_delimiter = ',')]
+    cases: Vec<String>,
+    /// Target number of patches per case (default: each face one patch, about).
+    #[arg(long, conflicts_with = "max_edge")]
+    patches: Option<usize>,
+    /// Subdivide so that no patch edge is longer than this (scene units).
+    #[arg(long)]
+    max_edge: Option<f64>,
+    #[command(flatten)]
+    factors: FactorArgs,
+}
+
+#[derive(Args, Debug)]
+struct SuiteScoreArgs {
+    /// The exported suite (folder with suite.json).
+    #[arg(long, default_value = "suite")]
+    suite: PathBuf,
+    /// Answers as one folder per case (DIR/CASE/): F.mtx (Matrix Market) with patches.csv
+    /// (area and surface, material or face per patch), optionally stderr.mtx and
+    /// provenance.json; `radiosity factors` writes such folders.
+    #[arg(
+        long,
+        visible_alias = "matrix",
+        conflicts_with = "csv",
+        required_unless_present = "csv"
+    )]
+    factors: Option<PathBuf>,
+    /// Answers as a CSV: case,from,to,value[,stderr][,seconds].
+    #[arg(long)]
+    csv: Option<PathBuf>,
+    /// Name of the program scored (and its settings).
+    #[arg(long, default_value = "unnamed")]
+    tool: String,
+    /// The command that made the answers (recorded in the score).
+    #[arg(long, default_value = "")]
+    command: String,
+    /// Relative error above which a case may be flagged.
+    #[arg(long, default_value_t = 1e-3)]
+    tolerance: f64,
+    /// A case with a bar is flagged only when its error is also above this many bars.
+    #[arg(long, default_value_t = 3.0)]
+    sigmas: f64,
+    /// Write the score as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Write the per-case scores as CSV here.
+    #[arg(long = "csv-out")]
+    csv_out: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]
@@ -863,6 +947,7 @@ pub fn run() -> Result<()> {
             radiosity::bench::run(&cfg, &mut |s| println!("{s}"))?;
             Ok(())
         }
+        Command::Suite(cmd) => suite(cmd),
         Command::Scenes => {
             let width = builtin::NAMES.iter().map(|n| n.len()).max().unwrap_or(0);
             for name in builtin::NAMES {
@@ -875,6 +960,87 @@ pub fn run() -> Result<()> {
 }
 
 /// `x` with `digits` significant digits (at least), in plain notation: 17.52, 0.0004120.
+fn suite(cmd: &SuiteCommand) -> Result<()> {
+    use radiosity::suite::{board, cases, export, run, score};
+    match cmd {
+        SuiteCommand::Export { dir } => {
+            let table = export::export(dir, &cases::all())?;
+            let classes: std::collections::BTreeSet<&str> =
+                table.cases.iter().map(|c| c.class.as_str()).collect();
+            println!(
+                "{}: {} cases in {} classes written to {}/{{suite.json, suite.csv, cases/}}",
+                table.suite,
+                table.cases.len(),
+                classes.len(),
+                dir.display()
+            );
+            Ok(())
+        }
+        SuiteCommand::Run(a) => {
+            a.factors.init_threads()?;
+            let mesh = MeshArgs {
+                patches: a.patches,
+                max_edge: a.max_edge,
+            };
+            let settings = run::Settings {
+                resolution: mesh.resolution_or(Resolution::DiagonalFraction(1.0))?,
+                estimator: a.factors.choice()?,
+                seed: a.factors.seed,
+                repair: a.factors.repair,
+            };
+            let done = run::run(&a.suite, &a.output, &settings, &a.cases, &mut |d| {
+                println!(
+                    "{:<28} {:>6} patches {:>12} rays {:>10.4}s",
+                    d.case, d.patches, d.rays, d.seconds
+                )
+            })?;
+            let total: f64 = done.iter().map(|d| d.seconds).sum();
+            println!(
+                "{} cases in {}s of form-factor stages; score with `radiosity suite score --suite {} --factors {}`",
+                done.len(),
+                significant(total, 4),
+                a.suite.display(),
+                a.output.display()
+            );
+            Ok(())
+        }
+        SuiteCommand::Score(a) => {
+            if !(a.tolerance >= 0.0 && a.sigmas >= 0.0) {
+                bail!("--tolerance and --sigmas must be >= 0");
+            }
+            let (table, _) = export::read_table(&a.suite)?;
+            let answers = match (&a.factors, &a.csv) {
+                (Some(dir), _) => score::read_folders(dir, &table)?,
+                (None, Some(csv)) => score::read_csv(csv, &table)?,
+                (None, None) => bail!("give --factors DIR or --csv FILE"),
+            };
+            let rule = score::Rule {
+                tolerance: a.tolerance,
+                sigmas: a.sigmas,
+            };
+            let s = score::score(&table, &answers, rule, &a.tool, &a.command);
+            print!("{}", score::report(&s));
+            if let Some(p) = &a.json {
+                score::write(p, &s)?;
+            }
+            if let Some(p) = &a.csv_out {
+                score::write(p, &s)?;
+            }
+            Ok(())
+        }
+        SuiteCommand::Board { output, scores } => {
+            let s = scores
+                .iter()
+                .map(|p| score::read(p))
+                .collect::<radiosity::Result<Vec<_>>>()?;
+            for p in board::write(output, &s)? {
+                println!("wrote {}", p.display());
+            }
+            Ok(())
+        }
+    }
+}
+
 fn significant(x: f64, digits: i32) -> String {
     if x <= 0.0 || !x.is_finite() {
         return format!("{x}");

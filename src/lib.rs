@@ -19,9 +19,9 @@
 //! ## No import cycles
 //! The modules form an acyclic graph: a module refers only to modules upstream of it
 //! (`error`, `input`, `budget`, `scene`, `mesh`, `sampling`, `simd`, `visibility`,
-//! `analytic`, `matrix`, `formfactor`, `hierarchy`, `repair`, `solve`, `thermal`, `output`, `store`,
-//! `pipeline`,
-//! then the consumers `study` and `bench`). The test `tests::module_graph_is_acyclic` at
+//! `analytic`, `matrix`, `formfactor`, `hierarchy`, `repair`, `solve`, `thermal`, `output`,
+//! `store`, `pipeline`, then the consumers `study`, `suite` and `bench`). The test
+//! `tests::module_graph_is_acyclic` at
 //! the bottom of this file checks it: it reads every file under `src/`, takes each
 //! `crate::MODULE` path in the code before the file's `#[cfg(test)]` (comments and doc
 //! links aside), and fails naming a cycle if there is one; `cargo test --lib module_graph`
@@ -54,6 +54,7 @@ pub mod simd;
 pub mod solve;
 pub mod store;
 pub mod study;
+pub mod suite;
 pub mod thermal;
 pub mod visibility;
 

@@ -12,4 +12,5 @@ mod shelf;
 mod stability;
 mod store;
 mod study;
+mod suite;
 mod thermal;
