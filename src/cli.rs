@@ -36,7 +36,8 @@ enum Command {
     /// Compute form factors only and store them (Matrix Market, CSV, JSON) for reuse.
     Factors(FactorsArgs),
     /// Radiative heat transfer between gray surfaces: temperatures, net fluxes and heat
-    /// flows with error bars (patches.csv, surfaces.csv); see docs/THERMAL.md.
+    /// flows with error bars (patches.csv, surfaces.csv; per vertex thermal.exr, mesh.ply);
+    /// see docs/THERMAL.md.
     Thermal(ThermalArgs),
     /// List the built-in scenes.
     Scenes,

@@ -1044,7 +1044,8 @@ pub fn thermal_scene(scene: &str, bc: Option<&Path>) -> Result<Scene> {
 
 /// Runs the thermal mode: load (with boundary conditions), mesh, form factors (computed or
 /// read from a folder), repair, the net-radiation solve with error bars
-/// ([`crate::thermal`]), and `patches.csv` and `surfaces.csv` written whole into `out_dir`.
+/// ([`crate::thermal`]), and `patches.csv`, `surfaces.csv`, the per-vertex `thermal.exr`
+/// and `mesh.ply` ([`output::thermal`]) written whole into `out_dir`.
 /// Every setting and input is checked before the form factors.
 pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary> {
     use crate::thermal::{self as th, Problem};
@@ -1183,6 +1184,34 @@ pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary
         .map(|(_, q)| q.abs())
         .reduce(f64::max);
     let names: Vec<String> = infos.iter().map(|s| s.name.clone()).collect();
+    // The per-vertex files store f32: refuse a value past its range (or not a number)
+    // before interpolating, naming the patch.
+    let per_patch = [
+        ("T", &sol.t),
+        ("T_se", &sol.se_t),
+        ("J", &sol.j),
+        ("J_se", &sol.se_j),
+        ("G", &sol.g),
+        ("G_se", &sol.se_g),
+        ("q", &sol.q),
+        ("q_se", &sol.se_q),
+    ];
+    for (name, x) in per_patch {
+        if let Some(k) = x.iter().position(|&v| !(v as f32).is_finite()) {
+            return Err(Error::Scene {
+                scene: scene.source.clone(),
+                msg: format!(
+                    "the thermal solve produced {name} = {} at patch {k}, not finite in f32 \
+                     (thermal.exr and mesh.ply store f32, up to {:e})",
+                    x[k],
+                    f32::MAX
+                ),
+            });
+        }
+    }
+    let verts = timer.run("per-vertex", 0, || {
+        output::thermal::vertex_fields(&patches, &sol)
+    });
     let files = timer.run("write", 0, || {
         output::write_folder(&cfg.out_dir, FolderKind::Thermal, |dir| {
             let p = Problem {
@@ -1201,10 +1230,12 @@ pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary
                 &names,
             )?;
             output::thermal::write_surfaces(&dir.join("surfaces.csv"), &infos, &results, &sol)?;
-            Ok(vec![
-                cfg.out_dir.join("patches.csv"),
-                cfg.out_dir.join("surfaces.csv"),
-            ])
+            output::thermal::write_exr(&dir.join("thermal.exr"), &verts, &scene.name)?;
+            output::thermal::write_ply(&dir.join("mesh.ply"), &verts)?;
+            Ok(["patches.csv", "surfaces.csv", "thermal.exr", "mesh.ply"]
+                .iter()
+                .map(|n| cfg.out_dir.join(n))
+                .collect())
         })
     })?;
     let total = results.get(groups).copied().unwrap_or_default();

@@ -8,6 +8,8 @@
 
 use std::path::{Path, PathBuf};
 
+use exr::prelude::{ReadChannels, ReadLayers};
+
 use radiosity::analytic::parallel_rectangles;
 use radiosity::matrix::Triplets;
 use radiosity::mesh::Resolution;
@@ -420,4 +422,219 @@ fn bad_thermal_input_is_refused_before_work() {
     let e = pipeline::thermal(&cfg, &Quiet).unwrap_err().to_string();
     assert!(e.contains("singular"), "{e}");
     assert!(!dir.join("out").exists());
+}
+
+/// `patches.csv` of a thermal run: per row, the surface and the named columns.
+fn read_patches_csv(path: &Path, columns: &[&str]) -> Vec<(String, Vec<f64>)> {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut lines = text.lines();
+    let head: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let at: Vec<usize> = columns
+        .iter()
+        .map(|c| head.iter().position(|h| h == c).unwrap())
+        .collect();
+    lines
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (
+                f[1].to_string(),
+                at.iter().map(|&k| f[k].parse().unwrap()).collect(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn per_vertex_exr_and_ply_agree_with_patches_csv() {
+    // The plates box split into patches 0.25 across: the plates (given temperatures) carry
+    // their temperature at every vertex; the walls' vertices average their patches.
+    let path = scene("plates.obj");
+    let res = Resolution::MaxEdge(0.25);
+    let ff = factors("vertex-ff", &path, res, &exact(), Repair::None);
+    let rows = "plate1,0.8,1000,\nplate2,0.4,500,\nwalls,0.5,,0\n";
+    let s = run("vertex", &path, res, &ff, rows, false);
+    let out = s.files[0].parent().unwrap().to_path_buf();
+    for f in ["thermal.exr", "mesh.ply"] {
+        assert!(s.files.contains(&out.join(f)), "{:?}", s.files);
+    }
+    let manifest = std::fs::read_to_string(out.join("manifest.json")).unwrap();
+    assert!(manifest.contains("thermal.exr") && manifest.contains("mesh.ply"));
+
+    // EXR channel, patches.csv column.
+    let pairs = [
+        ("T_K", "T_K"),
+        ("T_se", "T_se"),
+        ("J_W_m2", "J_W_m2"),
+        ("J_se", "J_se"),
+        ("G_W_m2", "G_W_m2"),
+        ("G_se", "G_se"),
+        ("q_W_m2", "q_W_m2"),
+        ("q_se", "q_se"),
+    ];
+    let cols: Vec<&str> = pairs.iter().map(|p| p.1).collect();
+    let table = read_patches_csv(&out.join("patches.csv"), &cols);
+    assert_eq!(table.len(), s.patches);
+
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_file(out.join("thermal.exr"))
+        .unwrap();
+    let layer = &image.layer_data;
+    let attr = |name: &str| {
+        layer
+            .attributes
+            .other
+            .iter()
+            .find(|(k, _)| *k == name)
+            .map(|(_, v)| v.clone())
+            .unwrap_or_else(|| panic!("no attribute {name}"))
+    };
+    let n = match attr("radiosity:vertexCount") {
+        exr::meta::attribute::AttributeValue::I32(n) => n as usize,
+        v => panic!("{v:?}"),
+    };
+    match attr("radiosity:layout") {
+        exr::meta::attribute::AttributeValue::Text(t) => {
+            assert!(
+                t.to_string().starts_with("radiosity-thermal-vertex/1"),
+                "{t}"
+            )
+        }
+        v => panic!("{v:?}"),
+    }
+    let names: Vec<String> = layer
+        .channel_data
+        .list
+        .iter()
+        .map(|c| c.name.to_string())
+        .collect();
+    assert!(
+        !names.iter().any(|c| ["R", "G", "B"].contains(&c.as_str())),
+        "{names:?}"
+    );
+    let channel = |name: &str| -> Vec<f32> {
+        let c = layer
+            .channel_data
+            .list
+            .iter()
+            .find(|c| c.name.to_string() == name)
+            .unwrap_or_else(|| panic!("no channel {name} in {names:?}"));
+        c.sample_data.values_as_f32().take(n).collect()
+    };
+    let (px, py, pz) = (channel("P.x"), channel("P.y"), channel("P.z"));
+    let ny = channel("N.y");
+    let values: Vec<Vec<f32>> = pairs.iter().map(|p| channel(p.0)).collect();
+    assert!(n > 8 && values.iter().all(|v| v.len() == n));
+
+    // A vertex's surface from its position and normal (plate1 at y = 0, plate2 at y = 0.5).
+    let surface_of = |k: usize| {
+        if ny[k].abs() > 0.99 && py[k] == 0.0 {
+            "plate1"
+        } else if ny[k].abs() > 0.99 && py[k] == 0.5 {
+            "plate2"
+        } else {
+            "walls"
+        }
+    };
+    let mut seen = [0usize; 3];
+    for (k, &t_k) in values[0].iter().enumerate() {
+        let surface = surface_of(k);
+        let given = match surface {
+            "plate1" => Some(1000.0f32),
+            "plate2" => Some(500.0f32),
+            _ => None,
+        };
+        seen[["plate1", "plate2", "walls"]
+            .iter()
+            .position(|s| *s == surface)
+            .unwrap()] += 1;
+        if let Some(t) = given {
+            assert_eq!(t_k, t, "vertex {k} of {surface}");
+        }
+        // Every value is an average of its surface's patch values: within their range.
+        for (c, (name, _)) in pairs.iter().enumerate() {
+            let (lo, hi) = table
+                .iter()
+                .filter(|(s, _)| s == surface)
+                .map(|(_, v)| v[c])
+                .fold((f64::MAX, f64::MIN), |(l, h), x| (l.min(x), h.max(x)));
+            let x = f64::from(values[c][k]);
+            let slack = 1e-6 * lo.abs().max(hi.abs()) + 1e-9;
+            assert!(
+                x >= lo - slack && x <= hi + slack,
+                "vertex {k} ({surface}) {name} = {x} outside [{lo}, {hi}]"
+            );
+        }
+    }
+    assert!(seen.iter().all(|&c| c > 0), "{seen:?}");
+    // patches.csv holds the given temperatures exactly too.
+    for (surface, t) in [("plate1", 1000.0), ("plate2", 500.0)] {
+        assert!(table.iter().filter(|r| r.0 == surface).all(|r| r.1[0] == t));
+    }
+
+    // mesh.ply: header, then the same vertices as the EXR.
+    let bytes = std::fs::read(out.join("mesh.ply")).unwrap();
+    let end = b"end_header\n";
+    let at = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+    let head = std::str::from_utf8(&bytes[..at]).unwrap();
+    let lines: Vec<&str> = head.lines().collect();
+    assert_eq!(lines[1], "format binary_little_endian 1.0");
+    assert!(
+        lines.contains(&format!("element vertex {n}").as_str()),
+        "{head}"
+    );
+    let comment = lines.iter().find(|l| l.starts_with("comment ")).unwrap();
+    assert!(
+        comment.contains(" K") && comment.contains("W/m2"),
+        "{comment}"
+    );
+    let props: Vec<&str> = lines
+        .iter()
+        .filter_map(|l| l.strip_prefix("property "))
+        .collect();
+    assert_eq!(
+        props[..12],
+        [
+            "float x",
+            "float y",
+            "float z",
+            "float nx",
+            "float ny",
+            "float nz",
+            "uchar red",
+            "uchar green",
+            "uchar blue",
+            "float temperature",
+            "float flux",
+            "float quality"
+        ]
+    );
+    let size = 6 * 4 + 3 + 3 * 4;
+    let body = &bytes[at..];
+    let f32_at = |o: usize| f32::from_le_bytes(body[o..o + 4].try_into().unwrap());
+    let (t_lo, t_hi) = values[0]
+        .iter()
+        .fold((f32::MAX, f32::MIN), |(l, h), &x| (l.min(x), h.max(x)));
+    assert_eq!((t_lo, t_hi), (500.0, 1000.0));
+    for k in 0..n {
+        let v = k * size;
+        assert_eq!(
+            [f32_at(v), f32_at(v + 4), f32_at(v + 8)],
+            [px[k], py[k], pz[k]]
+        );
+        let (t, q, quality) = (f32_at(v + 27), f32_at(v + 31), f32_at(v + 35));
+        assert_eq!(t.to_bits(), values[0][k].to_bits(), "temperature {k}");
+        assert_eq!(q.to_bits(), values[6][k].to_bits(), "flux {k}");
+        assert_eq!(quality.to_bits(), t.to_bits(), "quality {k}");
+        let colour = &body[v + 24..v + 27];
+        if t == t_hi {
+            assert_eq!(colour, [252, 255, 164], "hottest vertex {k}");
+        } else if t == t_lo {
+            assert_eq!(colour, [0, 0, 4], "coldest vertex {k}");
+        }
+    }
 }

@@ -20,6 +20,10 @@
 //! The triangles are not stored: they are the patch triangles of the scene at the same
 //! resolution, and the PLY output carries them for tools that need the mesh.
 //!
+//! The same layout with other value channels in place of `R G B` and another
+//! `radiosity:layout` is written by [`write_vertex_channels`] and read by
+//! [`read_vertex_channels`] (the thermal mode's `thermal.exr`).
+//!
 //! Files are written through [`write_atomic`]. [`read_exr`] reads
 //! them back (values are stored as f32, so a round trip is exact).
 
@@ -50,8 +54,12 @@ const ATTR_LAYOUT: &str = "radiosity:layout";
 const ATTR_COUNT: &str = "radiosity:vertexCount";
 const ATTR_SCENE: &str = "radiosity:scene";
 
-/// Channel names, in the order of the per-vertex values (R G B, P, N).
+/// Channel names of the bake, in the order of the per-vertex values (R G B, P, N).
+#[cfg(test)]
 const CHANNELS: [&str; 9] = ["R", "G", "B", "P.x", "P.y", "P.z", "N.x", "N.y", "N.z"];
+
+/// The geometry channels every per-vertex file ends with (P, N).
+const GEOMETRY: [&str; 6] = ["P.x", "P.y", "P.z", "N.x", "N.y", "N.z"];
 
 /// A bake read back from an EXR file.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -76,24 +84,63 @@ pub fn layout_size(n: usize) -> (usize, usize) {
 
 /// Writes the bake `v` of scene `scene_name` to `path` (layout in the module docs).
 pub fn write_exr(path: &Path, v: &VertexRadiosity, scene_name: &str) -> Result<()> {
-    let n = v.checked_len(path)?;
+    v.checked_len(path)?;
+    let plane = |c: usize| -> Vec<f32> { v.rgb.iter().map(|x| x[c]).collect() };
+    let (r, g, b) = (plane(0), plane(1), plane(2));
+    write_vertex_channels(
+        path,
+        LAYOUT,
+        v,
+        scene_name,
+        &[("R", &r), ("G", &g), ("B", &b)],
+    )
+}
+
+/// Writes one pixel per vertex of `mesh` (layout in the module docs) with the channels
+/// `values` (name, one value per vertex) followed by `P.x P.y P.z N.x N.y N.z`, and the
+/// header attribute `radiosity:layout` set to `layout`; `mesh.rgb` is not written. The
+/// generic layer under [`write_exr`] and the thermal mode's `thermal.exr`.
+pub fn write_vertex_channels(
+    path: &Path,
+    layout: &str,
+    mesh: &VertexRadiosity,
+    scene_name: &str,
+    values: &[(&str, &[f32])],
+) -> Result<()> {
+    let n = mesh.checked_len(path)?;
+    if let Some((name, v)) = values.iter().find(|(_, v)| v.len() != n) {
+        return Err(Error::Output {
+            path: path.to_path_buf(),
+            msg: format!("channel `{name}` has {} values for {n} vertices", v.len()),
+        });
+    }
     let count = i32::try_from(n).map_err(|_| Error::Output {
         path: path.to_path_buf(),
         msg: format!("{n} vertices are too many for one EXR bake"),
     })?;
     let (width, height) = layout_size(n);
-    let mut planes: Vec<Vec<f32>> = vec![vec![0.0; width * height]; CHANNELS.len()];
-    for k in 0..n {
-        let (p, nn, c) = (v.positions[k], v.normals[k], v.rgb[k]);
-        let values = [c[0], c[1], c[2], p.x, p.y, p.z, nn.x, nn.y, nn.z];
-        for (plane, value) in planes.iter_mut().zip(values) {
-            plane[k] = value;
+    let padded = |values: &mut dyn Iterator<Item = f32>| -> Vec<f32> {
+        let mut plane = vec![0.0; width * height];
+        for (slot, x) in plane.iter_mut().zip(values) {
+            *slot = x;
         }
-    }
-    let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> = CHANNELS
+        plane
+    };
+    let mut planes: Vec<(&str, Vec<f32>)> = values
         .iter()
-        .zip(planes)
-        .map(|(name, plane)| AnyChannel::new(*name, FlatSamples::F32(plane)))
+        .map(|(name, v)| (*name, padded(&mut v.iter().copied())))
+        .collect();
+    for (k, name) in GEOMETRY.iter().enumerate() {
+        let points = if k < 3 {
+            &mesh.positions
+        } else {
+            &mesh.normals
+        };
+        planes.push((name, padded(&mut points.iter().map(|q| q[k % 3]))));
+    }
+    let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> = planes
+        .into_iter()
+        .map(|(name, plane)| AnyChannel::new(name, FlatSamples::F32(plane)))
         .collect();
 
     let mut attributes = LayerAttributes {
@@ -102,7 +149,7 @@ pub fn write_exr(path: &Path, v: &VertexRadiosity, scene_name: &str) -> Result<(
     };
     attributes
         .other
-        .insert(text(ATTR_LAYOUT), AttributeValue::Text(text(LAYOUT)));
+        .insert(text(ATTR_LAYOUT), AttributeValue::Text(text(layout)));
     attributes
         .other
         .insert(text(ATTR_COUNT), AttributeValue::I32(count));
@@ -171,6 +218,41 @@ fn sort_attributes(bytes: &mut [u8]) -> Option<()> {
 
 /// Reads a bake written by [`write_exr`].
 pub fn read_exr(path: &Path) -> Result<ExrBake> {
+    let v = read_vertex_channels(path, LAYOUT_ID, &["R", "G", "B"])?;
+    let p = &v.values;
+    Ok(ExrBake {
+        scene: v.scene,
+        vertex_count: v.vertex_count,
+        rgb: (0..v.vertex_count)
+            .map(|k| [p[0][k], p[1][k], p[2][k]])
+            .collect(),
+        positions: v.positions,
+        normals: v.normals,
+    })
+}
+
+/// A file written by [`write_vertex_channels`], read back.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct VertexChannels {
+    /// Scene name from the header.
+    pub scene: String,
+    /// Number of vertices (padding pixels excluded).
+    pub vertex_count: usize,
+    /// Vertex positions.
+    pub positions: Vec<Vec3>,
+    /// Vertex normals.
+    pub normals: Vec<Vec3>,
+    /// The channels asked for, in the order asked, one value per vertex.
+    pub values: Vec<Vec<f32>>,
+}
+
+/// Reads a file written by [`write_vertex_channels`] whose `radiosity:layout` starts with
+/// `layout_id`: the channels `names` (each required), positions and normals.
+pub fn read_vertex_channels(
+    path: &Path,
+    layout_id: &str,
+    names: &[&str],
+) -> Result<VertexChannels> {
     let image = exr::prelude::read()
         .no_deep_data()
         .largest_resolution_level()
@@ -195,9 +277,9 @@ pub fn read_exr(path: &Path) -> Result<ExrBake> {
             "no `{ATTR_LAYOUT}` attribute: not a radiosity bake"
         ))
     })?;
-    if !layout.starts_with(LAYOUT_ID) {
+    if !layout.starts_with(layout_id) {
         return Err(bad(format!(
-            "unsupported bake layout `{layout}` (this version reads `{LAYOUT_ID}`)"
+            "unsupported bake layout `{layout}` (this version reads `{layout_id}`)"
         )));
     }
     let count = match attrs.get(&text(ATTR_COUNT)) {
@@ -213,8 +295,8 @@ pub fn read_exr(path: &Path) -> Result<ExrBake> {
     }
     let scene = get_text(ATTR_SCENE).unwrap_or_default();
 
-    let mut planes: Vec<Vec<f32>> = Vec::with_capacity(CHANNELS.len());
-    for name in CHANNELS {
+    let mut planes: Vec<Vec<f32>> = Vec::with_capacity(names.len() + GEOMETRY.len());
+    for &name in names.iter().chain(&GEOMETRY) {
         let channel = layer
             .channel_data
             .list
@@ -230,15 +312,16 @@ pub fn read_exr(path: &Path) -> Result<ExrBake> {
         }
         planes.push(plane);
     }
-    let vec3 = |k: usize, a: usize| Vec3::new(planes[a][k], planes[a + 1][k], planes[a + 2][k]);
-    Ok(ExrBake {
+    let geometry = planes.split_off(names.len());
+    let values = planes;
+    let vec3 =
+        |k: usize, a: usize| Vec3::new(geometry[a][k], geometry[a + 1][k], geometry[a + 2][k]);
+    Ok(VertexChannels {
         scene,
         vertex_count: count,
-        rgb: (0..count)
-            .map(|k| [planes[0][k], planes[1][k], planes[2][k]])
-            .collect(),
-        positions: (0..count).map(|k| vec3(k, 3)).collect(),
-        normals: (0..count).map(|k| vec3(k, 6)).collect(),
+        positions: (0..count).map(|k| vec3(k, 0)).collect(),
+        normals: (0..count).map(|k| vec3(k, 3)).collect(),
+        values,
     })
 }
 

@@ -43,7 +43,7 @@ pub enum FolderKind {
     Bake,
     /// A factors folder: `F.mtx`, `stderr.mtx`, `patches.csv`, `provenance.json`.
     Factors,
-    /// A thermal solution: `patches.csv`, `surfaces.csv`.
+    /// A thermal solution: `patches.csv`, `surfaces.csv`, `thermal.exr`, `mesh.ply`.
     Thermal,
 }
 

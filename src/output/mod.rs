@@ -4,14 +4,16 @@
 //! something a renderer or a person can use:
 //!
 //! - [`vertex`]: [`interpolate`] averages patch radiosity onto mesh vertices (area-weighted,
-//!   split at creases and material boundaries) into a [`VertexRadiosity`];
+//!   split at creases and material boundaries) into a [`VertexRadiosity`], and any scalar
+//!   fields the same way ([`interpolate_fields`]);
 //! - [`exr`]: the bake, one pixel per vertex, as a self-describing OpenEXR file
 //!   ([`write_exr`], [`read_exr`]);
 //! - [`ply`]: the same mesh as a binary PLY with vertex colours, for Blender or MeshLab
 //!   ([`write_ply`]);
 //! - [`preview`]: a small software rasterizer that renders the bake from the scene's camera
 //!   into an 8-bit sRGB image ([`render_preview`], [`write_png`]);
-//! - [`thermal`]: the thermal mode's per-patch and per-surface tables as CSV.
+//! - [`thermal`]: the thermal mode's per-patch and per-surface tables as CSV, and its
+//!   per-vertex `thermal.exr` and `mesh.ply` in the bake's layouts.
 //!
 //! Every writer goes through [`write_atomic`]: a file is either written whole or not at
 //! all, so an interrupted run never leaves a truncated bake that looks valid. A run's files
@@ -29,11 +31,16 @@ pub mod vertex;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
-pub use self::exr::{read_exr, write_exr, ExrBake};
+pub use self::exr::{
+    read_exr, read_vertex_channels, write_exr, write_vertex_channels, ExrBake, VertexChannels,
+};
 pub use self::folder::{check_folder, write_folder, FolderKind, Manifest};
-pub use self::ply::write_ply;
+pub use self::ply::{write_ply, write_ply_with};
 pub use self::preview::{render_preview, write_png, Exposure, Image};
-pub use self::vertex::{interpolate, interpolate_with, Nodal, VertexRadiosity, DEFAULT_CREASE_DEG};
+pub use self::vertex::{
+    interpolate, interpolate_fields, interpolate_with, Nodal, VertexFields, VertexRadiosity,
+    DEFAULT_CREASE_DEG,
+};
 
 use crate::error::{Error, Result};
 

@@ -27,6 +27,9 @@
 //!
 //! `red green blue` are display colours made by the same tone mapping as the preview
 //! ([`tone_map`]: exposure, clamp, sRGB); `radiosity_*` are the linear values.
+//!
+//! [`write_ply_with`] writes the same layout with other colours, other float properties in
+//! place of `radiosity_*` and another comment (the thermal mode's `mesh.ply`).
 
 use std::io::{BufWriter, Write};
 use std::path::Path;
@@ -39,39 +42,86 @@ use crate::error::{Error, Result};
 /// Writes `v` to `path` as a binary little-endian PLY with vertex colours tone-mapped at
 /// `exposure` (a linear scale, e.g. [`Image::exposure`](super::Image::exposure)).
 pub fn write_ply(path: &Path, v: &VertexRadiosity, exposure: f32) -> Result<()> {
+    v.checked_len(path)?;
+    let colours: Vec<[u8; 3]> = v.rgb.iter().map(|&c| tone_map(c, exposure)).collect();
+    let plane = |c: usize| -> Vec<f32> { v.rgb.iter().map(|x| x[c]).collect() };
+    let (r, g, b) = (plane(0), plane(1), plane(2));
+    let comment = format!(
+        "radiosity {} per-vertex radiosity; red green blue = sRGB at exposure {exposure}",
+        env!("CARGO_PKG_VERSION")
+    );
+    write_ply_with(
+        path,
+        v,
+        &comment,
+        &colours,
+        &[
+            ("radiosity_r", &r),
+            ("radiosity_g", &g),
+            ("radiosity_b", &b),
+        ],
+    )
+}
+
+/// Writes the mesh of `v` (positions, normals, triangles; `v.rgb` is not written) as a
+/// binary little-endian PLY whose vertices carry `x y z nx ny nz`, the 8-bit `red green
+/// blue` of `colours`, then the float properties `values` (name, one value per vertex), in
+/// that order, with the header line `comment <comment>`. The generic layer under
+/// [`write_ply`] and the thermal mode's `mesh.ply`.
+pub fn write_ply_with(
+    path: &Path,
+    v: &VertexRadiosity,
+    comment: &str,
+    colours: &[[u8; 3]],
+    values: &[(&str, &[f32])],
+) -> Result<()> {
     let n = v.checked_len(path)?;
-    if n > i32::MAX as usize {
-        return Err(Error::Output {
+    let refuse = |msg: String| {
+        Err(Error::Output {
             path: path.to_path_buf(),
-            msg: format!("{n} vertices are too many for PLY int indices"),
-        });
+            msg,
+        })
+    };
+    if n > i32::MAX as usize {
+        return refuse(format!("{n} vertices are too many for PLY int indices"));
+    }
+    if colours.len() != n {
+        return refuse(format!("{} colours for {n} vertices", colours.len()));
+    }
+    if let Some((name, x)) = values.iter().find(|(_, x)| x.len() != n) {
+        return refuse(format!(
+            "property `{name}` has {} values for {n} vertices",
+            x.len()
+        ));
+    }
+    if comment.contains(['\n', '\r']) {
+        return refuse("a PLY comment must be one line".into());
     }
     if let Some(t) = v
         .triangles
         .iter()
         .find(|t| t.iter().any(|&k| k as usize >= n))
     {
-        return Err(Error::Output {
-            path: path.to_path_buf(),
-            msg: format!("triangle {t:?} refers to a vertex beyond the {n} vertices"),
-        });
+        return refuse(format!(
+            "triangle {t:?} refers to a vertex beyond the {n} vertices"
+        ));
     }
+    let names: Vec<&str> = values.iter().map(|(name, _)| *name).collect();
+    let head = header(n, v.triangles.len(), comment, &names);
     write_atomic(path, |tmp| {
         let file = std::fs::File::create(tmp).map_err(|e| Error::io(tmp, e))?;
         let mut w = BufWriter::new(file);
-        write_body(&mut w, v, exposure).map_err(|e| Error::io(tmp, e))?;
+        write_body(&mut w, &head, v, colours, values).map_err(|e| Error::io(tmp, e))?;
         w.into_inner().map_err(|e| Error::io(tmp, e.into_error()))?;
         Ok(())
     })
 }
 
-/// The PLY header for `vertices` and `faces` (see the module docs).
-fn header(vertices: usize, faces: usize, exposure: f32) -> String {
+/// The PLY header for `vertices` and `faces` with the float properties `values` after the
+/// colours (see the module docs).
+fn header(vertices: usize, faces: usize, comment: &str, values: &[&str]) -> String {
     let mut h = String::from("ply\nformat binary_little_endian 1.0\n");
-    h += &format!(
-        "comment radiosity {} per-vertex radiosity; red green blue = sRGB at exposure {exposure}\n",
-        env!("CARGO_PKG_VERSION")
-    );
+    h += &format!("comment {comment}\n");
     h += &format!("element vertex {vertices}\n");
     for p in ["x", "y", "z", "nx", "ny", "nz"] {
         h += &format!("property float {p}\n");
@@ -79,23 +129,29 @@ fn header(vertices: usize, faces: usize, exposure: f32) -> String {
     for p in ["red", "green", "blue"] {
         h += &format!("property uchar {p}\n");
     }
-    for p in ["radiosity_r", "radiosity_g", "radiosity_b"] {
+    for p in values {
         h += &format!("property float {p}\n");
     }
     h += &format!("element face {faces}\nproperty list uchar int vertex_indices\nend_header\n");
     h
 }
 
-fn write_body(w: &mut impl Write, v: &VertexRadiosity, exposure: f32) -> std::io::Result<()> {
-    w.write_all(header(v.positions.len(), v.triangles.len(), exposure).as_bytes())?;
+fn write_body(
+    w: &mut impl Write,
+    head: &str,
+    v: &VertexRadiosity,
+    colours: &[[u8; 3]],
+    values: &[(&str, &[f32])],
+) -> std::io::Result<()> {
+    w.write_all(head.as_bytes())?;
     for k in 0..v.positions.len() {
-        let (p, n, c) = (v.positions[k], v.normals[k], v.rgb[k]);
+        let (p, n) = (v.positions[k], v.normals[k]);
         for x in [p.x, p.y, p.z, n.x, n.y, n.z] {
             w.write_all(&x.to_le_bytes())?;
         }
-        w.write_all(&tone_map(c, exposure))?;
-        for x in c {
-            w.write_all(&x.to_le_bytes())?;
+        w.write_all(&colours[k])?;
+        for (_, x) in values {
+            w.write_all(&x[k].to_le_bytes())?;
         }
     }
     for t in &v.triangles {

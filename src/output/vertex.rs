@@ -285,6 +285,51 @@ pub fn interpolate_with(
     out
 }
 
+/// Scalar fields per output vertex, on the mesh of [`interpolate`].
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct VertexFields {
+    /// The output mesh (positions, normals, triangles), the same as [`interpolate`] makes;
+    /// its `rgb` is zero.
+    pub mesh: VertexRadiosity,
+    /// One array per field, in the order given, one value per output vertex.
+    pub values: Vec<Vec<f32>>,
+}
+
+/// Interpolates any number of scalar patch fields (one value per patch each) onto the
+/// output vertices by `nodal`, exactly as [`interpolate_with`] does radiosity (three
+/// fields at a time: the mesh and its smoothing groups depend only on the patches).
+///
+/// # Panics
+/// If a field does not hold one value per patch: that is a bug in the caller.
+pub fn interpolate_fields(
+    patches: &PatchSet,
+    fields: &[&[f64]],
+    crease_deg: f32,
+    nodal: Nodal,
+) -> VertexFields {
+    let mut out = VertexFields::default();
+    for (k, chunk) in fields.chunks(3).enumerate() {
+        let b: Vec<[f64; 3]> = (0..patches.len())
+            .map(|i| {
+                let at = |c: usize| chunk.get(c).map_or(0.0, |f| f[i]);
+                [at(0), at(1), at(2)]
+            })
+            .collect();
+        let v = interpolate_with(patches, &b, crease_deg, nodal);
+        for c in 0..chunk.len() {
+            out.values.push(v.rgb.iter().map(|x| x[c]).collect());
+        }
+        if k == 0 {
+            out.mesh = v;
+        }
+    }
+    if fields.is_empty() {
+        out.mesh = interpolate_with(patches, &vec![[0.0; 3]; patches.len()], crease_deg, nodal);
+    }
+    out.mesh.rgb.iter_mut().for_each(|c| *c = [0.0; 3]);
+    out
+}
+
 /// The value at `at` of the least-squares plane through the (centroid, radiosity) pairs
 /// of `members`, in the tangent plane of normal `n`, per channel, clamped to the members'
 /// range; `None` when the centroids do not span a plane (the normal equations' determinant
@@ -788,6 +833,35 @@ mod tests {
             .rgb
             .iter()
             .all(|c| f64::from(c[0]) >= lo - 1e-6 && f64::from(c[0]) <= hi + 1e-6));
+    }
+
+    #[test]
+    fn scalar_fields_interpolate_as_radiosity() {
+        let set = two_coplanar(0, 1);
+        let f: Vec<Vec<f64>> = (0..4)
+            .map(|c| (0..set.len()).map(|i| (i * 7 + c) as f64).collect())
+            .collect();
+        let refs: Vec<&[f64]> = f.iter().map(|x| &x[..]).collect();
+        let out = interpolate_fields(&set, &refs, DEFAULT_CREASE_DEG, Nodal::Average);
+        let b: Vec<[f64; 3]> = (0..set.len())
+            .map(|i| [f[0][i], f[1][i], f[2][i]])
+            .collect();
+        let want = interpolate(&set, &b, DEFAULT_CREASE_DEG);
+        assert_eq!(out.mesh.positions, want.positions);
+        assert_eq!(out.mesh.triangles, want.triangles);
+        assert!(out.mesh.rgb.iter().all(|c| *c == [0.0; 3]));
+        assert_eq!(out.values.len(), 4);
+        for c in 0..3 {
+            let col: Vec<f32> = want.rgb.iter().map(|x| x[c]).collect();
+            assert_eq!(out.values[c], col);
+        }
+        let b: Vec<[f64; 3]> = (0..set.len()).map(|i| [f[3][i]; 3]).collect();
+        let col: Vec<f32> = interpolate(&set, &b, DEFAULT_CREASE_DEG)
+            .rgb
+            .iter()
+            .map(|x| x[0])
+            .collect();
+        assert_eq!(out.values[3], col);
     }
 
     #[test]
