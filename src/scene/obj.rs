@@ -381,7 +381,7 @@ pub fn parse_mtl(path: &Path, text: &str) -> Result<Vec<Material>> {
 
 /// MTL statements that change how a surface looks in a renderer but not its diffuse
 /// reflectance or emission, which is all radiosity uses: ignored with a warning.
-const IGNORED_MTL: [&str; 12] = [
+pub const IGNORED_MTL: [&str; 12] = [
     "map_Kd", "map_Ke", "map_Ka", "map_Ks", "map_Ns", "map_d", "map_Bump", "bump", "norm", "Ks",
     "Tf", "d",
 ];

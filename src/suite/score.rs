@@ -793,7 +793,7 @@ pub fn write(path: &Path, s: &Score) -> Result<PathBuf> {
     Ok(path.to_path_buf())
 }
 
-/// Reads a score written by [`write`] as JSON.
+/// Reads a score written by [`fn@write`] as JSON.
 pub fn read(path: &Path) -> Result<Score> {
     let text = read_text(path, MAX_TEXT_BYTES)?;
     serde_json::from_str(&text).map_err(|e| Error::Parse {
