@@ -257,13 +257,67 @@ fn draw<DB: DrawingBackend>(
         .collect();
     let xr = range(keep.iter().flatten().map(|p| p.0), spec.log_x);
     let yr = range(keep.iter().flatten().map(|p| p.1), spec.log_y);
+    let corner = emptiest_corner(&keep, (&xr, spec.log_x), (&yr, spec.log_y));
     // The four axis combinations have four coordinate types.
     match (spec.log_x, spec.log_y) {
-        (false, false) => plot(root, spec, series, &keep, xr, yr),
-        (true, false) => plot(root, spec, series, &keep, xr.log_scale(), yr),
-        (false, true) => plot(root, spec, series, &keep, xr, yr.log_scale()),
-        (true, true) => plot(root, spec, series, &keep, xr.log_scale(), yr.log_scale()),
+        (false, false) => plot(root, spec, series, &keep, corner, xr, yr),
+        (true, false) => plot(root, spec, series, &keep, corner, xr.log_scale(), yr),
+        (false, true) => plot(root, spec, series, &keep, corner, xr, yr.log_scale()),
+        (true, true) => plot(
+            root,
+            spec,
+            series,
+            &keep,
+            corner,
+            xr.log_scale(),
+            yr.log_scale(),
+        ),
     }
+}
+
+/// Share of the plot's width and height a legend is taken to cover in its corner.
+const LEGEND_BOX: (f64, f64) = (0.55, 0.4);
+
+/// The corner of the plot whose legend-sized box covers the fewest points (upper right
+/// first on ties), so that the legend hides as little data as it can.
+fn emptiest_corner(
+    points: &[Vec<(f64, f64)>],
+    (xr, log_x): (&Range<f64>, bool),
+    (yr, log_y): (&Range<f64>, bool),
+) -> SeriesLabelPosition {
+    let unit = |v: f64, r: &Range<f64>, log: bool| {
+        if log {
+            (v.ln() - r.start.ln()) / (r.end.ln() - r.start.ln())
+        } else {
+            (v - r.start) / (r.end - r.start)
+        }
+    };
+    let (w, h) = LEGEND_BOX;
+    let corners = [
+        (SeriesLabelPosition::UpperRight, true, true),
+        (SeriesLabelPosition::UpperLeft, false, true),
+        (SeriesLabelPosition::LowerRight, true, false),
+        (SeriesLabelPosition::LowerLeft, false, false),
+    ];
+    let covered = |right: bool, upper: bool| {
+        points
+            .iter()
+            .flatten()
+            .filter(|&&(x, y)| {
+                let (u, v) = (unit(x, xr, log_x), unit(y, yr, log_y));
+                (if right { u >= 1.0 - w } else { u <= w })
+                    && (if upper { v >= 1.0 - h } else { v <= h })
+            })
+            .count()
+    };
+    let mut best = (usize::MAX, SeriesLabelPosition::UpperRight);
+    for (pos, right, upper) in corners {
+        let n = covered(right, upper);
+        if n < best.0 {
+            best = (n, pos);
+        }
+    }
+    best.1
 }
 
 /// Tick label: plain for moderate magnitudes, `1e-5` style otherwise.
@@ -302,6 +356,7 @@ fn plot<DB, X, Y>(
     spec: &Spec,
     series: &[Series],
     keep: &[Vec<(f64, f64)>],
+    corner: SeriesLabelPosition,
     xr: X,
     yr: Y,
 ) -> std::result::Result<(), String>
@@ -361,7 +416,7 @@ where
     }
     if series.iter().any(|s| !s.name.is_empty()) {
         ch.configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
+            .position(corner)
             .background_style(WHITE.mix(0.85))
             .border_style(BLACK)
             .label_font(("sans-serif", 15))
