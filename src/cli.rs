@@ -430,6 +430,11 @@ struct BakeArgs {
     /// Preview exposure: `auto` or a multiplier of the radiosity.
     #[arg(long, default_value = "auto", allow_hyphen_values = true)]
     exposure: String,
+    /// Preview camera, `EX,EY,EZ,TX,TY,TZ[,UX,UY,UZ[,FOV]]`: eye, target, up (default
+    /// +Y) and vertical field of view in degrees (default 40), over the scene's
+    /// `#@camera` comment.
+    #[arg(long, value_name = "EYE,TARGET[,UP[,FOV]]", allow_hyphen_values = true)]
+    camera: Option<String>,
     /// Reuse form factors stored by `radiosity factors` (same scene and subdivision).
     #[arg(long, value_name = "DIR")]
     factors: Option<PathBuf>,
@@ -551,6 +556,46 @@ fn parse_memory(s: &str) -> Result<u64> {
 fn parse_width(s: &str) -> Result<radiosity::simd::Width> {
     radiosity::simd::Width::parse(s)
         .with_context(|| format!("--simd `{s}`: expected avx512, avx2 or baseline"))
+}
+
+/// Parses `--camera`: 6, 9 or 10 comma-separated numbers (see [`BakeArgs::camera`]).
+fn parse_camera(s: &str) -> Result<radiosity::scene::Camera> {
+    use glam::Vec3;
+    let form = "expected EX,EY,EZ,TX,TY,TZ[,UX,UY,UZ[,FOV]]";
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|w| w.trim().parse::<f32>())
+        .collect::<std::result::Result<_, _>>()
+        .with_context(|| format!("--camera `{s}`: {form}"))?;
+    if ![6, 9, 10].contains(&v.len()) || v.iter().any(|x| !x.is_finite()) {
+        bail!(
+            "--camera `{s}`: {form}, all finite (got {} numbers)",
+            v.len()
+        );
+    }
+    let (eye, target) = (Vec3::new(v[0], v[1], v[2]), Vec3::new(v[3], v[4], v[5]));
+    let up = if v.len() >= 9 {
+        Vec3::new(v[6], v[7], v[8])
+    } else {
+        Vec3::Y
+    };
+    let fov = v.get(9).copied().unwrap_or(40.0);
+    let view = target - eye;
+    if view.length() == 0.0 {
+        bail!("--camera `{s}`: the eye and the target are the same point");
+    }
+    if view.normalize().cross(up.normalize_or_zero()).length() < 1e-3 {
+        bail!("--camera `{s}`: the up direction is zero or along the line of sight");
+    }
+    if !(1.0..179.0).contains(&fov) {
+        bail!("--camera `{s}`: the field of view must be between 1 and 179 degrees");
+    }
+    Ok(radiosity::scene::Camera {
+        eye,
+        target,
+        up,
+        vfov_deg: fov,
+    })
 }
 
 fn parse_exposure(s: &str) -> Result<Exposure> {
@@ -676,6 +721,7 @@ fn bake(args: &BakeArgs) -> Result<()> {
         },
         preview: parse_size(&args.size)?,
         exposure: parse_exposure(&args.exposure)?,
+        camera: args.camera.as_deref().map(parse_camera).transpose()?,
         crease_deg: 30.0,
         factors: args.factors.clone(),
         steps: args.steps.clone(),

@@ -141,6 +141,8 @@ pub struct BakeConfig {
     /// Memory the run may plan to use, in bytes (`None`: what the system has available);
     /// a larger estimate is refused before any work ([`crate::budget`]).
     pub max_memory: Option<u64>,
+    /// Preview camera over the scene's `#@camera` (or the framing one).
+    pub camera: Option<crate::scene::Camera>,
 }
 
 impl Default for BakeConfig {
@@ -166,6 +168,7 @@ impl Default for BakeConfig {
             repair: Repair::None,
             hierarchy: None,
             max_memory: None,
+            camera: None,
         }
     }
 }
@@ -572,7 +575,7 @@ fn write_bake(
 ) -> Result<Vec<PathBuf>> {
     let names = output::write_folder(&cfg.out_dir, FolderKind::Bake, |dir| {
         output::write_exr(&dir.join("radiosity.exr"), verts, &scene.name)?;
-        let camera = scene.camera_or_framing();
+        let camera = cfg.camera.unwrap_or_else(|| scene.camera_or_framing());
         let (w, h) = cfg.preview;
         let image = output::render_preview(verts, &camera, w, h, cfg.exposure);
         output::write_png(&dir.join("preview.png"), &image)?;

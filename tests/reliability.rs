@@ -296,3 +296,45 @@ fn summaries_fit_80_columns_and_a_reused_matrix_reports_no_ray_rate() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn the_preview_camera_is_set_on_the_command_line_and_checked() {
+    let dir = temp_dir("camera");
+    let bake = |tag: &str, camera: Option<&str>| -> Vec<u8> {
+        let out = dir.join(tag);
+        let mut args = vec![
+            "bake",
+            "cornell",
+            "--patches",
+            "100",
+            "--size",
+            "48x48",
+            "-o",
+        ];
+        let o = out.to_str().expect("utf-8").to_string();
+        args.push(&o);
+        if let Some(c) = camera {
+            args.extend(["--camera", c]);
+        }
+        let r = radiosity(&args);
+        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+        std::fs::read(out.join("preview.png")).expect("preview")
+    };
+    // The scene's own `#@camera`, given on the command line: the same picture.
+    let own = bake("own", None);
+    assert_eq!(own, bake("same", Some("278,273,-800,278,273,0,0,1,0,39.3")));
+    // Another camera (negative coordinates first): another picture.
+    assert_ne!(own, bake("other", Some("-100,273,-500,278,200,0,0,1,0,60")));
+    let out = dir.join("bad");
+    let out = out.to_str().expect("utf-8");
+    for (camera, want) in [
+        ("1,2,3,1,2,3", "the eye and the target are the same point"),
+        ("0,0,0,0,1,0", "along the line of sight"),
+        ("0,0,0,1,0,0,0,1,0,200", "between 1 and 179 degrees"),
+        ("1,2", "got 2 numbers"),
+        ("a,b,c,d,e,f", "expected EX,EY,EZ"),
+    ] {
+        refused(&["bake", "cornell", "--camera", camera, "-o", out], &[want]);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
