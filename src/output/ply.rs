@@ -182,6 +182,7 @@ mod tests {
             rgb: vec![[0.0; 3], [0.5, 0.25, 0.125], [1.0; 3], [2.0, 0.0, 0.0]],
             triangles: vec![[0, 1, 2], [0, 2, 3]],
             patch_of_triangle: vec![0, 0],
+            emits: Vec::new(),
         }
     }
 

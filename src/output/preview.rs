@@ -19,7 +19,9 @@
 //!   light after exposure and clamping.
 //! - **Exposure.** [`Exposure::Auto`] scales linear radiosity so that the 99th percentile of
 //!   the luminance of covered samples (Rec. 709 luma weights 0.2126, 0.7152, 0.0722 on
-//!   linear RGB) maps to 0.9; the top 1 % (typically the lights) clips to white.
+//!   linear RGB) maps to 0.9, leaving out the samples of emitting surfaces (a lamp in view
+//!   would otherwise set the exposure and darken the room) unless nothing else is in view;
+//!   what is brighter clips to white.
 //!   [`Exposure::Fixed`] uses the given scale.
 //! - **Encoding.** Values are clamped to [0, 1] and encoded with the sRGB transfer function
 //!   of IEC 61966-2-1 ([`srgb_oetf`]) to 8 bits. Uncovered pixels are dark grey.
@@ -59,8 +61,8 @@ pub const AUTO_TARGET: f32 = 0.9;
 /// How linear radiosity is scaled before display.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub enum Exposure {
-    /// Scale so that the 99th percentile of the luminance of covered samples becomes 0.9
-    /// (scale 1 when nothing lit is visible).
+    /// Scale so that the 99th percentile of the luminance of covered samples that do not
+    /// emit becomes 0.9 (scale 1 when nothing lit is visible).
     #[default]
     Auto,
     /// Multiply linear radiosity by this factor.
@@ -143,6 +145,8 @@ struct ScreenTriangle {
     rgb_over_z: [DVec3; 3],
     /// Range of sample rows covered (inclusive), already clamped to the image.
     rows: (usize, usize),
+    /// The triangle belongs to an emitting surface ([`VertexRadiosity::emits`]).
+    emits: bool,
 }
 
 /// Renders `v` from `camera` at `width × height` pixels.
@@ -163,21 +167,29 @@ pub fn render_preview(
     // Linear radiosity per sample, and whether the sample is covered.
     let mut color = vec![[0.0f32; 3]; w * h];
     let mut depth = vec![0.0f64; w * h]; // 1/z; 0 = nothing (infinitely far)
+    let mut emits = vec![false; w * h];
+    let band = BAND_ROWS * w.max(1);
     color
-        .par_chunks_mut(BAND_ROWS * w.max(1))
-        .zip(depth.par_chunks_mut(BAND_ROWS * w.max(1)))
+        .par_chunks_mut(band)
+        .zip(depth.par_chunks_mut(band))
+        .zip(emits.par_chunks_mut(band))
         .enumerate()
-        .for_each(|(band, (color, depth))| {
+        .for_each(|(band, ((color, depth), emits))| {
             let y0 = band * BAND_ROWS;
             let y1 = y0 + color.len() / w.max(1); // exclusive
+            let mut out = Samples {
+                color,
+                depth,
+                emits,
+            };
             for t in triangles.iter().filter(|t| t.rows.0 < y1 && t.rows.1 >= y0) {
-                raster(t, w, y0, y1, color, depth);
+                raster(t, w, y0, y1, &mut out);
             }
         });
 
     let scale = match exposure {
         Exposure::Fixed(s) => s,
-        Exposure::Auto => auto_exposure(&color, &depth),
+        Exposure::Auto => auto_exposure(&color, &depth, &emits),
     };
     let bg = BACKGROUND.map(|c| srgb_eotf(f32::from(c) / 255.0));
     let mut rgb8 = vec![0u8; width as usize * height as usize * 3];
@@ -213,15 +225,32 @@ pub fn render_preview(
     }
 }
 
-/// The [`Exposure::Auto`] scale for the covered samples (see the module docs).
-fn auto_exposure(color: &[[f32; 3]], depth: &[f64]) -> f32 {
-    let mut lum: Vec<f32> = color
-        .iter()
-        .zip(depth)
-        .filter(|(_, &d)| d > 0.0)
-        .map(|(c, _)| luminance(*c))
-        .filter(|l| l.is_finite())
-        .collect();
+/// One band's sample buffers: linear radiosity, `1/z` (0: uncovered), and whether the
+/// nearest surface emits.
+struct Samples<'a> {
+    color: &'a mut [[f32; 3]],
+    depth: &'a mut [f64],
+    emits: &'a mut [bool],
+}
+
+/// The [`Exposure::Auto`] scale for the covered samples (see the module docs): those of
+/// emitting surfaces are left out (a lamp in view would darken the room), unless nothing
+/// else is covered.
+fn auto_exposure(color: &[[f32; 3]], depth: &[f64], emits: &[bool]) -> f32 {
+    let covered = |skip_emitters: bool| -> Vec<f32> {
+        color
+            .iter()
+            .zip(depth)
+            .zip(emits)
+            .filter(|((_, &d), &e)| d > 0.0 && !(skip_emitters && e))
+            .map(|((c, _), _)| luminance(*c))
+            .filter(|l| l.is_finite())
+            .collect()
+    };
+    let mut lum = covered(true);
+    if lum.is_empty() {
+        lum = covered(false);
+    }
     if lum.is_empty() {
         return 1.0;
     }
@@ -276,7 +305,9 @@ fn project(v: &VertexRadiosity, camera: &Camera, w: usize, h: usize) -> Vec<Scre
 
     v.triangles
         .par_iter()
-        .flat_map_iter(|t| {
+        .enumerate()
+        .flat_map_iter(|(ti, t)| {
+            let emits = v.emits.get(ti).copied().unwrap_or(false);
             let corner = |k: usize| {
                 let i = t[k] as usize;
                 let c = v.rgb.get(i).copied().unwrap_or([0.0; 3]);
@@ -315,6 +346,7 @@ fn project(v: &VertexRadiosity, camera: &Camera, w: usize, h: usize) -> Vec<Scre
                     inv_z: [s[0].1, s[1].1, s[2].1],
                     rgb_over_z: [s[0].2, s[1].2, s[2].2],
                     rows,
+                    emits,
                 })
             })
         })
@@ -345,14 +377,7 @@ fn clip_near(tri: [ClipVertex; 3], near: f64) -> Vec<ClipVertex> {
 }
 
 /// Draws triangle `t` into the sample rows `y0..y1` (`color` and `depth` hold those rows).
-fn raster(
-    t: &ScreenTriangle,
-    w: usize,
-    y0: usize,
-    y1: usize,
-    color: &mut [[f32; 3]],
-    depth: &mut [f64],
-) {
+fn raster(t: &ScreenTriangle, w: usize, y0: usize, y1: usize, out: &mut Samples) {
     let [a, b, c] = t.xy;
     // Twice the signed area; either sign is drawn (no back-face culling).
     let area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
@@ -385,11 +410,12 @@ fn raster(
             }
             let inv_z = l0 * t.inv_z[0] + l1 * t.inv_z[1] + l2 * t.inv_z[2];
             let k = row + sx;
-            if inv_z > depth[k] {
-                depth[k] = inv_z;
+            if inv_z > out.depth[k] {
+                out.depth[k] = inv_z;
                 let rgb =
                     (t.rgb_over_z[0] * l0 + t.rgb_over_z[1] * l1 + t.rgb_over_z[2] * l2) / inv_z;
-                color[k] = [rgb.x as f32, rgb.y as f32, rgb.z as f32];
+                out.color[k] = [rgb.x as f32, rgb.y as f32, rgb.z as f32];
+                out.emits[k] = t.emits;
             }
         }
     }
@@ -450,6 +476,7 @@ mod tests {
             rgb: rgb.to_vec(),
             triangles: vec![[0, 1, 2]],
             patch_of_triangle: vec![0],
+            emits: Vec::new(),
         }
     }
 
@@ -540,10 +567,72 @@ mod tests {
                     [order[3], order[4], order[5]],
                 ],
                 patch_of_triangle: vec![0, 1],
+                emits: Vec::new(),
             };
             let img = render_preview(&v, &camera(), 32, 32, Exposure::Fixed(1.0));
             assert_eq!(img.pixel(16, 16), [0, 0, 255]);
         }
+    }
+
+    #[test]
+    fn auto_exposure_leaves_emitters_out() {
+        // A lamp (radiosity 50) beside a wall (0.2), each covering half the view.
+        let v = VertexRadiosity {
+            positions: vec![
+                Vec3::new(-9.0, -9.0, 0.0),
+                Vec3::new(0.0, -9.0, 0.0),
+                Vec3::new(0.0, 9.0, 0.0),
+                Vec3::new(-9.0, 9.0, 0.0),
+                Vec3::new(9.0, -9.0, 0.0),
+                Vec3::new(9.0, 9.0, 0.0),
+            ],
+            normals: vec![-Vec3::Z; 6],
+            rgb: vec![
+                [50.0; 3], [50.0; 3], [50.0; 3], [50.0; 3], // lamp corners 0-3
+                [0.2; 3], [0.2; 3],
+            ],
+            triangles: vec![[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2]],
+            patch_of_triangle: vec![0, 0, 1, 1],
+            emits: vec![true, true, false, false],
+        };
+        // Vertices 1 and 2 are shared with the lamp: give the wall its own copies.
+        let mut v = v;
+        v.positions
+            .extend([Vec3::new(0.0, -9.0, 0.0), Vec3::new(0.0, 9.0, 0.0)]);
+        v.normals.extend([-Vec3::Z; 2]);
+        v.rgb.extend([[0.2; 3]; 2]);
+        v.triangles[2] = [6, 4, 5];
+        v.triangles[3] = [6, 5, 7];
+        let img = render_preview(&v, &camera(), 32, 32, Exposure::Auto);
+        assert!(
+            (img.exposure - AUTO_TARGET / 0.2).abs() < 1e-4,
+            "{}",
+            img.exposure
+        );
+        // Without the flags the lamp sets the exposure and the wall goes dark.
+        let blind = VertexRadiosity {
+            emits: Vec::new(),
+            ..v.clone()
+        };
+        let img = render_preview(&blind, &camera(), 32, 32, Exposure::Auto);
+        assert!(
+            (img.exposure - AUTO_TARGET / 50.0).abs() < 1e-6,
+            "{}",
+            img.exposure
+        );
+        // Only the lamp in view: it is what the exposure has.
+        let lamp = VertexRadiosity {
+            triangles: v.triangles[..2].to_vec(),
+            patch_of_triangle: vec![0, 0],
+            emits: vec![true, true],
+            ..v.clone()
+        };
+        let img = render_preview(&lamp, &camera(), 32, 32, Exposure::Auto);
+        assert!(
+            (img.exposure - AUTO_TARGET / 50.0).abs() < 1e-6,
+            "{}",
+            img.exposure
+        );
     }
 
     #[test]
@@ -563,6 +652,7 @@ mod tests {
             rgb: vec![[0.0; 3], [0.0; 3], [1.0; 3], [1.0; 3]],
             triangles: vec![[0, 1, 2], [0, 2, 3]],
             patch_of_triangle: vec![0, 0],
+            emits: Vec::new(),
         };
         let cam = Camera {
             eye: Vec3::ZERO,

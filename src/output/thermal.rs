@@ -289,6 +289,7 @@ mod tests {
             rgb: vec![[0.0; 3]; 3],
             triangles: vec![[0, 1, 2]],
             patch_of_triangle: vec![0],
+            emits: Vec::new(),
         };
         let mut values = vec![vec![1.0; 3]; EXR_CHANNELS.len()];
         values[T] = t.to_vec();

@@ -69,6 +69,9 @@ pub struct VertexRadiosity {
     pub triangles: Vec<[u32; 3]>,
     /// The patch each triangle belongs to.
     pub patch_of_triangle: Vec<u32>,
+    /// Whether each triangle's surface emits (empty: none does); the preview's automatic
+    /// exposure leaves emitters out.
+    pub emits: Vec<bool>,
 }
 
 impl VertexRadiosity {
@@ -204,6 +207,11 @@ pub fn interpolate_with(
     let mut out = VertexRadiosity {
         triangles: Vec::with_capacity(patches.triangles.len()),
         patch_of_triangle: patches.tri_patch.clone(),
+        emits: patches
+            .tri_patch
+            .iter()
+            .map(|&p| patches.materials[patches.material[p as usize] as usize].is_emitter())
+            .collect(),
         ..Default::default()
     };
     let mut root_of_out: Vec<u32> = Vec::new();
