@@ -197,6 +197,9 @@ impl Camera {
     }
 }
 
+/// The tilt of [`Scene::interior_camera`]'s probe rays off the grid directions.
+const TILT: DVec3 = DVec3::new(0.0123, 0.0071, 0.0037);
+
 /// A scene: positions, faces and materials, plus an optional preview camera.
 #[derive(Clone, Debug)]
 pub struct Scene {
@@ -235,9 +238,95 @@ impl Scene {
     /// The preview camera: the scene's own, or one framing its bounds.
     pub fn camera_or_framing(&self) -> Camera {
         self.camera.unwrap_or_else(|| {
-            let (lo, hi) = self.bounds();
-            Camera::framing(lo.as_vec3(), hi.as_vec3())
+            self.interior_camera().unwrap_or_else(|| {
+                let (lo, hi) = self.bounds();
+                Camera::framing(lo.as_vec3(), hi.as_vec3())
+            })
         })
+    }
+
+    /// For a closed room, a camera inside it: when every one of 26 rays from the centre of
+    /// the bounds (along the axes, the face diagonals and the body diagonals) first meets
+    /// the front of a face, the scene is taken to be seen from inside, and a camera from
+    /// outside would show only the backs of its walls. The eye is then 90% of the way
+    /// from the centre toward the wall at the negative end of the longer horizontal axis
+    /// (x or z; +y up), looking across the room, with a 70° field of view. `None` for an
+    /// open scene.
+    pub fn interior_camera(&self) -> Option<Camera> {
+        let (lo, hi) = self.bounds();
+        if !(lo.is_finite() && hi.is_finite()) {
+            return None;
+        }
+        let c = (lo + hi) * 0.5;
+        let mut dirs = Vec::with_capacity(26);
+        for x in -1..=1 {
+            for y in -1..=1 {
+                for z in -1..=1 {
+                    if (x, y, z) != (0, 0, 0) {
+                        // Tilted off the exact diagonals, which meet a box's edges and
+                        // corners, where a ray can slip between two faces.
+                        let d = DVec3::new(x as f64, y as f64, z as f64) + TILT;
+                        dirs.push(d.normalize());
+                    }
+                }
+            }
+        }
+        let mut reach = Vec::with_capacity(dirs.len());
+        for d in &dirs {
+            let (t, front) = self.first_hit(c, *d)?;
+            if !front {
+                return None;
+            }
+            reach.push(t);
+        }
+        let ext = hi - lo;
+        let (axis, k) = if ext.x >= ext.z {
+            (DVec3::X, 4) // direction about (-1, 0, 0)
+        } else {
+            (DVec3::Z, 12) // direction about (0, 0, -1)
+        };
+        let eye = c - axis * (0.9 * reach[k]);
+        Some(Camera {
+            eye: eye.as_vec3(),
+            target: (c + axis * (0.5 * reach[k])).as_vec3(),
+            up: Vec3::Y,
+            vfov_deg: 70.0,
+        })
+    }
+
+    /// The nearest face met by the ray `o + t d` (t > 0): its distance, and whether the ray
+    /// meets the face's front (the side its counter-clockwise winding faces). `None` when
+    /// the ray leaves the scene. Möller and Trumbore's ray-triangle test over each face's
+    /// fan (faces are planar and convex).
+    fn first_hit(&self, o: DVec3, d: DVec3) -> Option<(f64, bool)> {
+        let mut best: Option<(f64, bool)> = None;
+        for f in &self.faces {
+            let c = f.corner_slice();
+            let p = |k: usize| self.positions[c[k] as usize];
+            for k in 1..c.len() - 1 {
+                let (a, b, e) = (p(0), p(k), p(k + 1));
+                let (e1, e2) = (b - a, e - a);
+                let h = d.cross(e2);
+                let det = e1.dot(h);
+                if det.abs() < 1e-300 {
+                    continue;
+                }
+                let s = o - a;
+                let u = s.dot(h) / det;
+                let q = s.cross(e1);
+                let v = d.dot(q) / det;
+                let t = e2.dot(q) / det;
+                if u < 0.0 || v < 0.0 || u + v > 1.0 || t <= 0.0 {
+                    continue;
+                }
+                if best.is_none_or(|(bt, _)| t < bt) {
+                    // det = -d . (e1 x e2): positive when the face's normal faces the
+                    // ray's origin.
+                    best = Some((t, det > 0.0));
+                }
+            }
+        }
+        best
     }
 
     /// Errors unless some face has an emitting material.
@@ -298,5 +387,53 @@ impl Scene {
             name: name_or_path.to_string(),
             known: builtin::NAMES.join(", "),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    /// A 4 x 3 x 2 box (x, y, z) with its six faces wound inward or outward.
+    fn boxed(inward: bool) -> super::Scene {
+        let faces = if inward {
+            "f 2 3 4 1\nf 8 7 6 5\nf 5 6 2 1\nf 3 7 8 4\nf 4 8 5 1\nf 6 7 3 2\n"
+        } else {
+            "f 1 4 3 2\nf 5 6 7 8\nf 1 2 6 5\nf 4 8 7 3\nf 1 5 8 4\nf 2 3 7 6\n"
+        };
+        let obj = format!(
+            "v 0 0 0\nv 4 0 0\nv 4 3 0\nv 0 3 0\nv 0 0 2\nv 4 0 2\nv 4 3 2\nv 0 3 2\n{faces}"
+        );
+        super::obj::parse("box", Path::new("box.obj"), &obj, &|_| unreachable!()).unwrap()
+    }
+
+    #[test]
+    fn a_closed_room_is_previewed_from_inside_and_an_open_scene_from_outside() {
+        let room = boxed(true);
+        let cam = room.interior_camera().expect("a closed room");
+        // Inside, 90% of the way toward the x = 0 wall (x is the longer horizontal axis),
+        // looking along +x.
+        assert!(
+            (cam.eye - glam::Vec3::new(0.2, 1.5, 1.0)).length() < 0.05,
+            "{cam:?}"
+        );
+        assert!(cam.target.x > cam.eye.x && cam.vfov_deg == 70.0);
+        assert_eq!(room.camera_or_framing(), cam);
+        // Wound outward, the same box is seen from outside.
+        let shell = boxed(false);
+        assert!(shell.interior_camera().is_none());
+        let outside = shell.camera_or_framing();
+        let (lo, hi) = shell.bounds();
+        let e = outside.eye.as_dvec3();
+        assert!(e.cmplt(lo).any() || e.cmpgt(hi).any(), "{outside:?}");
+        // A box with one wall missing is open.
+        let mut open = boxed(true);
+        open.faces.pop();
+        assert!(open.interior_camera().is_none());
+        // A scene's own camera wins.
+        for name in ["cornell", "cube"] {
+            let s = super::Scene::load(name).unwrap();
+            assert_eq!(s.camera_or_framing(), s.camera.unwrap(), "{name}");
+        }
     }
 }
