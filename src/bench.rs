@@ -605,6 +605,95 @@ pub fn format_stages(reports: &[StageReport]) -> String {
     o
 }
 
+/// What a benchmark table says about where it was measured.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct Machine {
+    /// CPU model (`/proc/cpuinfo`'s `model name`; empty when unknown).
+    pub cpu: String,
+    /// Logical cores the system offers.
+    pub cores: usize,
+    /// Worker threads the run used.
+    pub threads: usize,
+    /// Program name and version.
+    pub version: String,
+    /// When the table was written: UTC, ISO 8601.
+    pub date: String,
+}
+
+impl Machine {
+    /// This machine, for a run on `threads` workers.
+    pub fn here(threads: usize) -> Machine {
+        let cpu = std::fs::read_to_string("/proc/cpuinfo")
+            .ok()
+            .and_then(|t| {
+                t.lines()
+                    .find(|l| l.starts_with("model name"))
+                    .and_then(|l| l.split_once(':'))
+                    .map(|(_, v)| v.trim().to_string())
+            })
+            .unwrap_or_default();
+        let secs = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        Machine {
+            cpu,
+            cores: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            threads,
+            version: format!("radiosity {}", env!("CARGO_PKG_VERSION")),
+            date: utc_iso8601(secs),
+        }
+    }
+}
+
+/// `secs` after the Unix epoch as `YYYY-MM-DDTHH:MM:SSZ` (the proleptic Gregorian
+/// calendar; days to civil date by Hinnant's algorithm, "chrono-Compatible Low-Level Date
+/// Algorithms").
+pub fn utc_iso8601(secs: u64) -> String {
+    let (days, rem) = ((secs / 86_400) as i64, secs % 86_400);
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z",
+        rem / 3600,
+        rem / 60 % 60,
+        rem % 60
+    )
+}
+
+/// JSON of stage reports with the machine they were measured on: `{"machine": {...},
+/// "cases": [{"scene", "patches", "estimator", "rays", "factors", "bytes_per_factor",
+/// "stages": [{"stage", "seconds", "peak_bytes"}]}]}`.
+pub fn stages_json(reports: &[StageReport], machine: &Machine) -> String {
+    let cases: Vec<serde_json::Value> = reports
+        .iter()
+        .map(|r| {
+            serde_json::json!({
+                "scene": r.scene,
+                "patches": r.patches,
+                "estimator": r.estimator,
+                "rays": r.rays,
+                "factors": r.nnz,
+                "bytes_per_factor": FormFactors::BYTES_PER_ENTRY,
+                "solve_error": r.solve_error,
+                "stages": r.stages.iter().map(|s| serde_json::json!({
+                    "stage": s.stage,
+                    "seconds": s.seconds,
+                    "peak_bytes": s.peak,
+                })).collect::<Vec<_>>(),
+            })
+        })
+        .collect();
+    let doc = serde_json::json!({ "machine": machine, "cases": cases });
+    serde_json::to_string_pretty(&doc).unwrap_or_default() + "\n"
+}
+
 /// CSV of stage reports: one line per (case, stage).
 pub fn stages_csv(reports: &[StageReport]) -> String {
     let mut o = String::from("scene,patches,estimator,rays,factors,stage,seconds,peak_bytes\n");
@@ -781,8 +870,13 @@ fn scaling(
                 print(&format_stages(std::slice::from_ref(&r)));
                 reports.push(r);
             }
-            if reports.len() >= 2 {
-                let mut line = format!("log-log slope in N, {scene}, {}:", reports[0].estimator);
+            // A slope from two sizes is a ratio, not a fit: at least three.
+            if reports.len() >= 3 {
+                let mut line = format!(
+                    "log-log slope in N ({} sizes), {scene}, {}:",
+                    reports.len(),
+                    reports[0].estimator
+                );
                 for s in &reports[0].stages {
                     let pts: Vec<(f64, f64)> = reports
                         .iter()
@@ -805,7 +899,10 @@ fn scaling(
     std::fs::create_dir_all(&cfg.out_dir).map_err(|e| Error::io(&cfg.out_dir, e))?;
     let csv = cfg.out_dir.join("scaling.csv");
     std::fs::write(&csv, stages_csv(&all)).map_err(|e| Error::io(&csv, e))?;
-    print(&format!("wrote {}", csv.display()));
+    let json = cfg.out_dir.join("scaling.json");
+    let table = stages_json(&all, &Machine::here(threads));
+    std::fs::write(&json, table).map_err(|e| Error::io(&json, e))?;
+    print(&format!("wrote {} and {}", csv.display(), json.display()));
 
     // Acceptance case and parallel efficiency: cube 32 x 32 per face, 1,024 rays per patch.
     let scene = Scene::load("cube")?;
@@ -878,6 +975,39 @@ fn scaling(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn dates_are_utc_iso8601() {
+        assert_eq!(utc_iso8601(0), "1970-01-01T00:00:00Z");
+        assert_eq!(utc_iso8601(951_782_400), "2000-02-29T00:00:00Z");
+        // As `date -u -d @1796180645` prints it.
+        assert_eq!(utc_iso8601(1_796_180_645), "2026-12-02T03:04:05Z");
+    }
+
+    #[test]
+    fn the_json_table_names_the_machine() {
+        let m = Machine::here(2);
+        assert_eq!(m.threads, 2);
+        assert!(m.cores >= 1 && m.version.starts_with("radiosity ") && m.date.ends_with('Z'));
+        let r = StageReport {
+            scene: "cube".into(),
+            patches: 6,
+            estimator: "semi".into(),
+            rays: 10,
+            nnz: 30,
+            stages: vec![StageLine {
+                stage: "form factors",
+                seconds: 0.5,
+                peak: 1024,
+            }],
+            iterations: 3,
+            solve_error: None,
+        };
+        let v: serde_json::Value = serde_json::from_str(&stages_json(&[r], &m)).unwrap();
+        assert_eq!(v["machine"]["threads"], 2);
+        assert_eq!(v["cases"][0]["stages"][0]["stage"], "form factors");
+        assert_eq!(v["cases"][0]["factors"], 30);
+    }
 
     #[test]
     fn slope_of_a_power_law() {
