@@ -323,6 +323,15 @@ fn blind_warning(empty: usize, n: usize) -> Option<String> {
     })
 }
 
+/// Reads a stored factors folder for `patches` ([`store::read`]) and refuses it when a
+/// row is over 1 beyond chance and `repair` does not restore row sums ([`check_rows`]):
+/// every consumer of stored factors (bake, thermal) goes through here.
+fn read_factors(dir: &Path, patches: &PatchSet, repair: Repair) -> Result<FormFactors> {
+    let ff = store::read(dir, patches)?;
+    check_rows(dir, &ff, repair)?;
+    Ok(ff)
+}
+
 /// Refuses stored factors with a row over 1 by more than its bar allows
 /// ([`FormFactors::row_over_one_beyond_chance`]), unless `repair` restores the row sums.
 fn check_rows(dir: &Path, ff: &FormFactors, repair: Repair) -> Result<()> {
@@ -482,10 +491,8 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     })?;
     let (ff, embree) = match &cfg.factors {
         Some(dir) => (
-            timer.run("read factors", 0, || -> Result<FormFactors> {
-                let ff = store::read(dir, &patches)?;
-                check_rows(dir, &ff, cfg.repair)?;
-                Ok(ff)
+            timer.run("read factors", 0, || {
+                read_factors(dir, &patches, cfg.repair)
             })?,
             String::from("not used"),
         ),
@@ -1087,7 +1094,9 @@ pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary
     })?;
     let (ff, _) = match &cfg.factors {
         Some(dir) => (
-            timer.run("read factors", 0, || store::read(dir, &patches))?,
+            timer.run("read factors", 0, || {
+                read_factors(dir, &patches, cfg.repair)
+            })?,
             (),
         ),
         None => {
