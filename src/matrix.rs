@@ -142,8 +142,8 @@ fn grow<T: Clone + Default>(v: &mut Vec<T>, len: usize) {
 }
 
 /// The CSR storage of `F`: `f64` values, `u32` column indices (a scene has at most
-/// `u32::MAX / 4` patches), `usize` row pointers. With the `f64` standard errors of
-/// [`FormFactors::se`], 20 bytes per stored factor.
+/// `u32::MAX / 4` patches), `usize` row pointers. With the `f32` standard errors of
+/// [`FormFactors::se`], 16 bytes per stored factor.
 pub type Csr = CsMatI<f64, u32, usize>;
 
 /// Triplets that convert to a [`Csr`] (`.to_csr()`).
@@ -154,8 +154,9 @@ pub type Triplets = TriMatI<f64, u32>;
 pub struct FormFactors {
     /// `F[i, j]`: fraction of the energy leaving patch i that arrives at patch j (CSR).
     pub f: Csr,
-    /// Standard error of each stored entry, aligned with `f.data()`.
-    pub se: Vec<f64>,
+    /// Standard error of each stored entry, aligned with `f.data()` (`f32`: an error bar
+    /// needs no more than 7 digits).
+    pub se: Vec<f32>,
     /// Patch areas.
     pub area: Vec<f64>,
     /// Rays cast.
@@ -184,7 +185,7 @@ pub struct CsrBuilder {
     indptr: Vec<usize>,
     indices: Vec<u32>,
     data: Vec<f64>,
-    se: Vec<f64>,
+    se: Vec<f32>,
 }
 
 impl CsrBuilder {
@@ -247,7 +248,7 @@ impl CsrBuilder {
         for e in row.iter() {
             self.indices.push(e.j);
             self.data.push(e.f);
-            self.se.push(e.se);
+            self.se.push(e.se as f32);
         }
         self.indptr.push(self.indices.len());
     }
@@ -284,7 +285,7 @@ impl CsrBuilder {
             for (k, e) in r.iter().enumerate() {
                 ix[k].write(e.j);
                 dx[k].write(e.f);
-                sx[k].write(e.se);
+                sx[k].write(e.se as f32);
             }
         });
         // SAFETY: the `nnz` slots after `base` of each array were all written just above
@@ -349,14 +350,14 @@ impl CsrBuilder {
                     let j = e.j as usize;
                     let s = area[i] / area[j];
                     let p = &mut cursor[j - j0];
-                    (ix[*p], dx[*p], sx[*p]) = (i as u32, e.f * s, e.se * s);
+                    (ix[*p], dx[*p], sx[*p]) = (i as u32, e.f * s, (e.se * s) as f32);
                     *p += 1;
                 }
             }
             // Then each row's own upper part.
             for (j, p) in (j0..j1).zip(cursor) {
                 for (k, e) in rows[j].iter().enumerate() {
-                    (ix[p + k], dx[p + k], sx[p + k]) = (e.j, e.f, e.se);
+                    (ix[p + k], dx[p + k], sx[p + k]) = (e.j, e.f, e.se as f32);
                 }
             }
         });
@@ -435,7 +436,8 @@ impl FormFactors {
     }
 
     /// Bytes held per stored factor: column index, value and standard error.
-    pub const BYTES_PER_ENTRY: usize = std::mem::size_of::<u32>() + 2 * std::mem::size_of::<f64>();
+    pub const BYTES_PER_ENTRY: usize =
+        std::mem::size_of::<u32>() + std::mem::size_of::<f64>() + std::mem::size_of::<f32>();
     /// Number of patches.
     pub fn len(&self) -> usize {
         self.f.rows()
@@ -453,7 +455,10 @@ impl FormFactors {
 
     /// Standard error of `F[i, j]` (0 when not stored).
     pub fn stderr(&self, i: usize, j: usize) -> f64 {
-        self.f.nnz_index(i, j).map(|k| self.se[k.0]).unwrap_or(0.0)
+        self.f
+            .nnz_index(i, j)
+            .map(|k| f64::from(self.se[k.0]))
+            .unwrap_or(0.0)
     }
 
     /// The stored entries of row `i`: `(j, F_ij, standard error)`.
@@ -461,7 +466,7 @@ impl FormFactors {
         let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));
         (lo..hi).map(move |k| {
             let j = self.f.indices()[k] as usize;
-            (j, self.f.data()[k], self.se[k])
+            (j, self.f.data()[k], f64::from(self.se[k]))
         })
     }
 
@@ -516,7 +521,11 @@ impl FormFactors {
     /// Standard error of the sum of row `i` (entries' errors added in quadrature).
     pub fn row_sum_stderr(&self, i: usize) -> f64 {
         let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));
-        self.se[lo..hi].iter().map(|s| s * s).sum::<f64>().sqrt()
+        self.se[lo..hi]
+            .iter()
+            .map(|&s| f64::from(s) * f64::from(s))
+            .sum::<f64>()
+            .sqrt()
     }
 
     /// Row sums, reciprocity and range checks.
@@ -599,7 +608,7 @@ impl FormFactors {
         };
         let (mut pairs, mut beyond) = (0usize, 0usize);
         for ((&j, &f), &se_ij) in cols.iter().zip(vals).zip(ses) {
-            let j = j as usize;
+            let (j, se_ij) = (j as usize, f64::from(se_ij));
             if !f.is_finite() || !(0.0..=1.0).contains(&f) {
                 d.out_of_range += 1;
             }
@@ -638,7 +647,8 @@ impl FormFactors {
         back: Option<usize>,
         d: &mut Diagnostics,
     ) -> Option<bool> {
-        let (f_back, se_ji) = back.map_or((0.0, 0.0), |k| (self.f.data()[k], self.se[k]));
+        let (f_back, se_ji) =
+            back.map_or((0.0, 0.0), |k| (self.f.data()[k], f64::from(self.se[k])));
         let fij = self.area[i] * f;
         let fji = self.area[j] * f_back;
         let m = fij.abs().max(fji.abs());
@@ -799,7 +809,7 @@ mod tests {
             d.min_row_sum = d.min_row_sum.min(s);
             for (k, (j, &f)) in row.iter().enumerate() {
                 let back = ff.f.nnz_index(j, i).map(|k| k.0);
-                if let Some(b) = ff.reciprocity_of((i, j), (f, ff.se[lo + k]), back, &mut d) {
+                if let Some(b) = ff.reciprocity_of((i, j), (f, f64::from(ff.se[lo + k])), back, &mut d) {
                     pairs += 1;
                     beyond += usize::from(b);
                 }
@@ -873,7 +883,7 @@ mod tests {
         rows
     }
 
-    fn arrays(b: CsrBuilder) -> (Vec<usize>, Vec<u32>, Vec<f64>, Vec<f64>) {
+    fn arrays(b: CsrBuilder) -> (Vec<usize>, Vec<u32>, Vec<f64>, Vec<f32>) {
         (b.indptr, b.indices, b.data, b.se)
     }
 

@@ -161,7 +161,7 @@ pub fn apply(ff: FormFactors, how: Repair) -> (FormFactors, RepairReport) {
 pub fn repair(ff: &FormFactors, how: Repair) -> (FormFactors, RepairReport) {
     let before = check(ff);
     let mut out = ff.clone();
-    let sigma0 = ff.se.clone();
+    let sigma0 = widen(&ff.se);
     let rounds = match how {
         Repair::None => 0,
         Repair::Reciprocity => {
@@ -175,7 +175,7 @@ pub fn repair(ff: &FormFactors, how: Repair) -> (FormFactors, RepairReport) {
         Repair::Both => {
             // Standard errors from one pass of each; values iterate in the fixed metric.
             reciprocity(&mut out, &sigma0, true);
-            let metric = out.se.clone();
+            let metric = widen(&out.se);
             closure(&mut out, &metric, true);
             let mut rounds = 1;
             while rounds < 1000 {
@@ -214,6 +214,11 @@ pub fn repair(ff: &FormFactors, how: Repair) -> (FormFactors, RepairReport) {
             rounds,
         },
     )
+}
+
+/// The stored `f32` standard errors as `f64` weights.
+fn widen(se: &[f32]) -> Vec<f64> {
+    se.iter().map(|&s| f64::from(s)).collect()
 }
 
 /// Index into `data` of the stored entry (i, j).
@@ -256,7 +261,7 @@ fn reciprocity(ff: &mut FormFactors, sigma: &[f64], update_se: bool) {
     for (k, f, s) in changes {
         ff.f.data_mut()[k] = f;
         if update_se {
-            ff.se[k] = s;
+            ff.se[k] = s as f32;
         }
     }
 }
@@ -278,7 +283,7 @@ fn closure(ff: &mut FormFactors, sigma: &[f64], update_se: bool) {
                 let v = sigma[k] * sigma[k];
                 ff.f.data_mut()[k] += v * deficit / var;
                 if update_se {
-                    ff.se[k] = (v - v * v / var).max(0.0).sqrt();
+                    ff.se[k] = (v - v * v / var).max(0.0).sqrt() as f32;
                 }
             }
         } else if sum > 0.0 {

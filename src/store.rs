@@ -111,15 +111,19 @@ const PIECES: usize = 64;
 
 /// Writes `values` (aligned with `ff.f`'s entries) as a Matrix Market file: the lines are
 /// formatted in parallel, a batch of row ranges at a time, and written in row order.
-fn write_mtx(path: &Path, ff: &FormFactors, values: &[f64]) -> Result<()> {
+fn write_mtx<V: std::fmt::LowerExp + Sync>(
+    path: &Path,
+    ff: &FormFactors,
+    values: &[V],
+) -> Result<()> {
     write_mtx_in(path, ff, values, PIECE, PIECES)
 }
 
 /// [`write_mtx`] with tasks of about `piece` entries, `pieces` of them at a time.
-fn write_mtx_in(
+fn write_mtx_in<V: std::fmt::LowerExp + Sync>(
     path: &Path,
     ff: &FormFactors,
-    values: &[f64],
+    values: &[V],
     piece: usize,
     pieces_at_once: usize,
 ) -> Result<()> {
@@ -652,7 +656,7 @@ pub fn read(dir: &Path, patches: &PatchSet) -> Result<FormFactors> {
         }
     })?;
     Ok(FormFactors {
-        se: se.data,
+        se: se.data.iter().map(|&s| s as f32).collect(),
         f,
         area: patches.area.clone(),
         rays: prov.rays,
