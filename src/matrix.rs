@@ -500,6 +500,7 @@ impl FormFactors {
             let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));
             let (s2, s4) = self.se[lo..hi]
                 .iter()
+                .map(|&s| f64::from(s))
                 .fold((0.0, 0.0), |(a, b), s| (a + s * s, b + s.powi(4)));
             let se = s2.sqrt();
             let dof = if s4 > 0.0 {
