@@ -26,7 +26,6 @@ use crate::error::{Error, Result};
 use crate::formfactor::{
     self, AreaMc, Context, Hemisphere, Nodes, Pattern, Row, Scratch, SemiAnalytic,
 };
-use crate::matrix::FormFactors;
 use crate::mesh::{PatchSet, Resolution};
 use crate::output;
 use crate::pipeline::{self, EstimatorChoice};
@@ -469,6 +468,10 @@ pub struct StageReport {
     pub rays: u64,
     /// Stored factors.
     pub nnz: usize,
+    /// Bytes the factor matrix's entries held per stored factor (measured).
+    pub bytes_per_factor: f64,
+    /// Bytes of the matrix's row pointers.
+    pub row_pointer_bytes: usize,
     /// Per stage.
     pub stages: Vec<StageLine>,
     /// Solver iterations.
@@ -532,6 +535,8 @@ pub fn stages(
     });
     drop(vis);
     let (rays, nnz) = (ff.rays, ff.f.nnz());
+    let bytes_per_factor = ff.entry_bytes() as f64 / nnz.max(1) as f64;
+    let row_pointer_bytes = ff.row_pointer_bytes();
     let solved = st.run("solve", || {
         pipeline::solve_radiosity(&patches, &ff, Method::GaussSeidel, &Options::default())
     });
@@ -558,6 +563,8 @@ pub fn stages(
         estimator: name,
         rays,
         nnz,
+        bytes_per_factor,
+        row_pointer_bytes,
         stages: st.0,
         iterations,
         solve_error,
@@ -593,7 +600,7 @@ pub fn format_stages(reports: &[StageReport]) -> String {
                 format!("{:.3} / {:.0}", s.seconds, s.peak as f64 / 1048576.0)
             );
         }
-        let _ = writeln!(o, " {:>9}", FormFactors::BYTES_PER_ENTRY);
+        let _ = writeln!(o, " {:>9.2}", r.bytes_per_factor);
         if let Some(e) = &r.solve_error {
             let _ = writeln!(
                 o,
@@ -669,7 +676,7 @@ pub fn utc_iso8601(secs: u64) -> String {
 
 /// JSON of stage reports with the machine they were measured on: `{"machine": {...},
 /// "cases": [{"scene", "patches", "estimator", "rays", "factors", "bytes_per_factor",
-/// "stages": [{"stage", "seconds", "peak_bytes"}]}]}`.
+/// "row_pointer_bytes", "stages": [{"stage", "seconds", "peak_bytes"}]}]}`.
 pub fn stages_json(reports: &[StageReport], machine: &Machine) -> String {
     let cases: Vec<serde_json::Value> = reports
         .iter()
@@ -680,7 +687,8 @@ pub fn stages_json(reports: &[StageReport], machine: &Machine) -> String {
                 "estimator": r.estimator,
                 "rays": r.rays,
                 "factors": r.nnz,
-                "bytes_per_factor": FormFactors::BYTES_PER_ENTRY,
+                "bytes_per_factor": r.bytes_per_factor,
+                "row_pointer_bytes": r.row_pointer_bytes,
                 "solve_error": r.solve_error,
                 "stages": r.stages.iter().map(|s| serde_json::json!({
                     "stage": s.stage,
@@ -995,6 +1003,8 @@ mod tests {
             estimator: "semi".into(),
             rays: 10,
             nnz: 30,
+            bytes_per_factor: 16.0,
+            row_pointer_bytes: 56,
             stages: vec![StageLine {
                 stage: "form factors",
                 seconds: 0.5,

@@ -5,7 +5,9 @@
 //! The estimate ([`Estimate`]) is an upper bound made of
 //! - the patches: mesh arrays, the Embree scene, per-vertex output and solver vectors
 //!   ([`PER_PATCH`] bytes each, rounded up from the arrays' sizes);
-//! - the form factors: 24 bytes per stored entry (column, value, standard error), at most
+//! - the form factors: [`PER_ENTRY`] bytes per stored entry (the 16 of the stored matrix,
+//!   plus half of a row entry's 24: estimators that compute the upper triangle hold it
+//!   while the whole matrix is assembled), at most
 //!   `n - 1` entries per row, fewer for the estimators that cast a fixed number of rays per
 //!   row (hemisphere, hemicube); a dense `n x n` copy for the direct solver;
 //! - the preview: [`PER_PIXEL`] bytes per output pixel (2 x 2 samples of colour and depth,
@@ -19,8 +21,10 @@ use crate::error::{Error, Result};
 /// Bytes per patch besides the form factors (an upper bound, see the module docs).
 pub const PER_PATCH: u64 = 1024;
 
-/// Bytes per stored form factor: column index, value and standard error.
-pub const PER_ENTRY: u64 = 24;
+/// Bytes per stored form factor at the peak of assembly: the stored matrix's column, value
+/// and standard error, and the upper triangle's row entries held while it is mirrored.
+pub const PER_ENTRY: u64 = (crate::matrix::FormFactors::BYTES_PER_ENTRY
+    + std::mem::size_of::<crate::matrix::Entry>() / 2) as u64;
 
 /// Bytes per preview pixel.
 pub const PER_PIXEL: u64 = 96;

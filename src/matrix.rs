@@ -438,6 +438,19 @@ impl FormFactors {
     /// Bytes held per stored factor: column index, value and standard error.
     pub const BYTES_PER_ENTRY: usize =
         std::mem::size_of::<u32>() + std::mem::size_of::<f64>() + std::mem::size_of::<f32>();
+    /// Bytes the stored entries' arrays hold (columns, values, standard errors), measured
+    /// from their lengths; the row pointers ([`FormFactors::row_pointer_bytes`]) are per
+    /// row, not per factor.
+    pub fn entry_bytes(&self) -> usize {
+        use std::mem::size_of_val;
+        size_of_val(self.f.indices()) + size_of_val(self.f.data()) + size_of_val(self.se.as_slice())
+    }
+
+    /// Bytes of the row pointers (one `usize` per row, and one more).
+    pub fn row_pointer_bytes(&self) -> usize {
+        std::mem::size_of_val(self.f.indptr().raw_storage())
+    }
+
     /// Number of patches.
     pub fn len(&self) -> usize {
         self.f.rows()
@@ -714,6 +727,37 @@ mod tests {
     }
 
     #[test]
+    fn a_stored_factor_takes_sixteen_bytes() {
+        let rows = vec![
+            vec![
+                Entry {
+                    j: 1,
+                    f: 0.25,
+                    se: 0.01,
+                },
+                Entry {
+                    j: 2,
+                    f: 0.5,
+                    se: 0.02,
+                },
+            ],
+            vec![Entry {
+                j: 0,
+                f: 0.125,
+                se: 1e-3,
+            }],
+            vec![],
+        ];
+        let ff = FormFactors::from_rows(rows, vec![1.0; 3], 0, 0.0, "t".into(), 0);
+        assert_eq!(ff.f.nnz(), 3);
+        assert_eq!(ff.entry_bytes(), 16 * 3);
+        assert_eq!(ff.entry_bytes(), FormFactors::BYTES_PER_ENTRY * ff.f.nnz());
+        assert_eq!(ff.row_pointer_bytes(), 4 * std::mem::size_of::<usize>());
+        // The bar keeps 7 digits.
+        assert_eq!(ff.stderr(1, 0), f64::from(1e-3f32));
+    }
+
+    #[test]
     fn honest_rows_over_one_are_refused_at_most_at_the_alarm_rate() {
         // 4000 honest matrices of 25 closed rows: expected at most 4 refusals at the
         // family-wise rate 1e-3; more than 14 has probability below 1e-5 if the rate holds.
@@ -810,7 +854,9 @@ mod tests {
             d.min_row_sum = d.min_row_sum.min(s);
             for (k, (j, &f)) in row.iter().enumerate() {
                 let back = ff.f.nnz_index(j, i).map(|k| k.0);
-                if let Some(b) = ff.reciprocity_of((i, j), (f, f64::from(ff.se[lo + k])), back, &mut d) {
+                if let Some(b) =
+                    ff.reciprocity_of((i, j), (f, f64::from(ff.se[lo + k])), back, &mut d)
+                {
                     pairs += 1;
                     beyond += usize::from(b);
                 }

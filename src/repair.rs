@@ -346,11 +346,15 @@ mod tests {
             vec![1.0, 2.0, 1.0],
         );
         let (r, _) = repair(&ff, Repair::Reciprocity);
-        let (w1, w2) = (1.0 / 0.01f64.powi(2), 1.0 / 0.02f64.powi(2));
+        // The weights are those of the stored (f32) standard errors.
+        let s = f64::from(0.01f32);
+        let (w1, w2) = (1.0 / s.powi(2), 1.0 / (2.0 * s).powi(2));
         let g = (0.30 * w1 + 0.32 * w2) / (w1 + w2);
         assert!((r.get(0, 1) - g).abs() < 1e-12);
         assert!((2.0 * r.get(1, 0) - g).abs() < 1e-12);
-        assert!((r.stderr(0, 1) - (1.0 / (w1 + w2)).sqrt()).abs() < 1e-12);
+        // The repaired bar is stored as f32 too: equal to the rounding of the exact one.
+        let se = f64::from((1.0 / (w1 + w2)).sqrt() as f32);
+        assert_eq!(r.stderr(0, 1), se);
         // (0, 2) has no transpose stored: kept, and (2, 0) not created.
         assert_eq!(r.get(0, 2), 0.1);
         assert_eq!(r.f.nnz(), ff.f.nnz());
@@ -367,12 +371,24 @@ mod tests {
             vec![1.0, 1.0, 1.0],
         );
         let (r, rep) = repair(&ff, Repair::Both);
+        // Three patches, symmetric, zero diagonal, rows summing to 1: x01 + x02 = x01 + x12
+        // = x02 + x12 = 1 has the one solution x = 1/2, whatever the weights.
         for i in 0..3 {
             assert!((r.row_sum(i) - 1.0).abs() < 1e-9, "row {i}");
             for j in 0..3 {
                 assert!((r.get(i, j) - r.get(j, i)).abs() < 1e-9);
+                if i != j {
+                    assert!(
+                        (r.get(i, j) - 0.5).abs() < 1e-9,
+                        "({i}, {j}) {}",
+                        r.get(i, j)
+                    );
+                }
             }
         }
-        assert!(rep.rounds > 1 && rep.max_shift_sigmas < 5.0, "{rep:?}");
+        // The largest shift is F_21: 0.55 -> 0.50 with a bar of 0.01 (stored as f32), 5 bars.
+        let expected = 0.05 / f64::from(0.01f32);
+        assert!(rep.rounds > 1, "{rep:?}");
+        assert!((rep.max_shift_sigmas - expected).abs() < 1e-6, "{rep:?}");
     }
 }

@@ -99,7 +99,7 @@ pub struct Problem<'a> {
     /// `F[i, j]`, by rows (CSR).
     pub f: &'a Csr,
     /// Standard error of each stored factor, aligned with `f.data()`.
-    pub se: &'a [f64],
+    pub se: &'a [f32],
     /// Patch areas, m² (or the scene's units squared: fluxes are per unit area).
     pub area: &'a [f64],
     /// Emissivity per patch, in (0, 1].
@@ -372,7 +372,7 @@ fn gauss_seidel(
 /// For each stored entry of `f`, the position of its mirror `(j, i)` when the two satisfy
 /// reciprocity to rounding in value and standard error (one random variable; see the
 /// module docs), else `None`. Diagonal entries map to `None`.
-fn reciprocal_pairs(f: &Csr, se: &[f64], area: &[f64]) -> Vec<Option<usize>> {
+fn reciprocal_pairs(f: &Csr, se: &[f32], area: &[f64]) -> Vec<Option<usize>> {
     let ptr = f.indptr();
     let ptr = ptr.to_proper();
     let (ind, val) = (f.indices(), f.data());
@@ -389,7 +389,7 @@ fn reciprocal_pairs(f: &Csr, se: &[f64], area: &[f64]) -> Vec<Option<usize>> {
             };
             let m = ptr[j] + m;
             let (g, h) = (area[i] * val[k], area[j] * val[m]);
-            let (sg, sh) = (area[i] * se[k], area[j] * se[m]);
+            let (sg, sh) = (area[i] * f64::from(se[k]), area[j] * f64::from(se[m]));
             let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs());
             if close(g, h) && close(sg, sh) {
                 out[k] = Some(m);
@@ -437,7 +437,7 @@ fn check_grounded(p: &Problem, f: &Csr, r: &[f64]) -> Result<()> {
     for i in 0..n {
         let s_se: f64 = p.se[ptr[i]..ptr[i + 1]]
             .iter()
-            .map(|s| s * s)
+            .map(|&s| f64::from(s) * f64::from(s))
             .sum::<f64>()
             .sqrt();
         if r[i] < 1.0 || 1.0 - sums[i] > (3.0 * s_se).max(1e-9) {
@@ -576,7 +576,7 @@ fn tangent_replicates(p: &Problem, settings: &Settings, sol: &mut Solution) -> R
                     // The pair's variable is drawn at its lower-row entry; the mirror
                     // follows by reciprocity.
                     Some(m) if jj < i => df[e] = df[m] * p.area[jj] / p.area[i],
-                    _ => df[e] = p.se[e] * normal(&mut rng),
+                    _ => df[e] = f64::from(p.se[e]) * normal(&mut rng),
                 }
             }
         }
@@ -665,7 +665,7 @@ pub fn linear_se(
         for e in ptr[i]..ptr[i + 1] {
             let j = ind[e] as usize;
             let g = h[i] * sol.u[j];
-            let se = p.se[e];
+            let se = f64::from(p.se[e]);
             match pairs[e] {
                 // Counted with its mirror, at the entry above the diagonal.
                 Some(_) if j < i => {}
@@ -758,7 +758,7 @@ pub fn surfaces(
 
 /// Factors between surfaces (zones): `group[i]` names patch i's surface in `0..groups`.
 /// Returns the zone matrix `F_SK = sum_{i in S, j in K} A_i F_ij / A_S` (CSR), its standard
-/// errors and the zone areas. With each surface as one zone of uniform radiosity this is
+/// errors (`f32`, as every stored bar) and the zone areas. With each surface as one zone of uniform radiosity this is
 /// the zonal model that the closed forms of the textbooks assume (Hottel and Sarofim 1967,
 /// ch. 8; Modest, 3rd ed., sec. 6.3: "each surface isothermal with uniform radiosity").
 /// Reciprocal pairs of patches (module docs) give reciprocal zone factors with coupled
@@ -766,11 +766,11 @@ pub fn surfaces(
 /// independent variances `(A_i s_ij)²`.
 pub fn lump(
     f: &Csr,
-    se: &[f64],
+    se: &[f32],
     area: &[f64],
     group: &[u32],
     groups: usize,
-) -> Result<(Csr, Vec<f64>, Vec<f64>)> {
+) -> Result<(Csr, Vec<f32>, Vec<f64>)> {
     let n = area.len();
     if f.rows() != n || se.len() != f.nnz() || group.len() != n {
         return Err(Error::Config(format!(
@@ -803,7 +803,7 @@ pub fn lump(
             let j = ind[e] as usize;
             let k = group[j] as usize;
             sum[s * groups + k] += area[i] * val[e];
-            let v = (area[i] * se[e]).powi(2);
+            let v = (area[i] * f64::from(se[e])).powi(2);
             match pairs[e] {
                 Some(_) if s == k && j < i => {}
                 Some(_) if s == k => var[s * groups + k] += 4.0 * v,
@@ -825,7 +825,7 @@ pub fn lump(
     // Standard errors in the CSR order of `zf`.
     for (s, row) in zf.outer_iterator().enumerate() {
         for (k, _) in row.iter() {
-            out_se.push(var[s * groups + k].sqrt() / a[s]);
+            out_se.push((var[s * groups + k].sqrt() / a[s]) as f32);
         }
     }
     Ok((zf, out_se, a))
