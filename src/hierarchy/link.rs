@@ -35,8 +35,7 @@
 //! Random streams are keyed on `(seed, r, s)`, and element numbering does not depend on
 //! the thread count, so neither do the links.
 
-use glam::DVec3;
-
+use super::blockers::{range, Blockers};
 use super::element::Elements;
 use crate::formfactor::exact::{self, Emitter, Receiver};
 use crate::mesh::PatchSet;
@@ -59,7 +58,14 @@ pub struct Link {
     pub partial: bool,
     /// The visible fraction `v` (1 when unoccluded): `f` is the unoccluded factor times it.
     pub vis: f64,
+    /// True when [`Blockers`] proved that nothing blocks the pair (no ray was cast): then
+    /// nothing blocks any pair of their pieces either.
+    pub proved: bool,
 }
+
+/// Most steps a proof takes before rays are cast instead
+/// ([`Blockers::unoccluded_within`]): about what `2 × 2` rays cost.
+pub const PROOF_BUDGET: usize = 32;
 
 /// What evaluating a candidate link costs and finds.
 #[derive(Clone, Copy, Debug, Default)]
@@ -75,123 +81,6 @@ impl std::ops::AddAssign for Cost {
         self.rays += o.rays;
         self.evals += o.evals;
     }
-}
-
-/// The patches that may block a segment between two elements: every root patch that is
-/// not a *hull face* (one whose plane has the whole scene on or in front of it), with its
-/// bounding box, plane and corners.
-pub struct Blockers {
-    boxes: Vec<(DVec3, DVec3)>,
-    planes: Vec<(DVec3, DVec3)>,
-    corners: Vec<Vec<DVec3>>,
-    /// Non-hull patches.
-    candidates: Vec<u32>,
-    /// Scale-relative tolerance of the plane tests.
-    tol: f64,
-}
-
-/// More candidate blockers than this and the proof is not attempted: the pair is traced.
-const MAX_PROOF_BLOCKERS: usize = 512;
-
-impl Blockers {
-    /// The candidate blockers of the roots of `e`.
-    pub fn new(e: &Elements, diagonal: f64) -> Blockers {
-        let tol = 1e-9 * diagonal;
-        let n = e.roots;
-        let corners: Vec<Vec<DVec3>> = (0..n as u32).map(|k| e.corners(k).to_vec()).collect();
-        let boxes: Vec<(DVec3, DVec3)> = corners.iter().map(|c| bounds(c)).collect();
-        let planes: Vec<(DVec3, DVec3)> = (0..n).map(|k| (e.normal[k], e.centre[k])).collect();
-        let all: Vec<DVec3> = corners.iter().flatten().copied().collect();
-        let (lo, hi) = boxes
-            .iter()
-            .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(a, b), &(l, h)| {
-                (a.min(l), b.max(h))
-            });
-        let candidates = (0..n)
-            .filter(|&k| {
-                let (nk, ck) = planes[k];
-                // The box's lowest point along n bounds every corner; else scan.
-                let bound = (nk * lo).min(nk * hi).element_sum() - nk.dot(ck);
-                let hull = bound >= -tol || all.iter().all(|&q| nk.dot(q - ck) >= -tol);
-                !hull
-            })
-            .map(|k| k as u32)
-            .collect();
-        Blockers {
-            boxes,
-            planes,
-            corners,
-            candidates,
-            tol,
-        }
-    }
-
-    /// Number of patches that may block something.
-    pub fn len(&self) -> usize {
-        self.candidates.len()
-    }
-
-    /// True when nothing can block anything (a convex room).
-    pub fn is_empty(&self) -> bool {
-        self.candidates.is_empty()
-    }
-
-    /// True when [`Blockers::unoccluded`] can prove anything: few enough candidates.
-    pub fn provable(&self) -> bool {
-        self.candidates.len() <= MAX_PROOF_BLOCKERS
-    }
-
-    /// True when no patch can block any segment between points of `a` and `b` (roots
-    /// `ra`, `rb`): for each candidate, its box misses the pair's box, or it lies on or
-    /// behind the plane of `a` or of `b`, or both elements lie on one side of its plane
-    /// (a segment between them never crosses that plane).
-    pub fn unoccluded(&self, a: &[DVec3], ra: u32, b: &[DVec3], rb: u32) -> bool {
-        if self.candidates.is_empty() {
-            return true;
-        }
-        if self.candidates.len() > MAX_PROOF_BLOCKERS {
-            return false;
-        }
-        let tol = self.tol;
-        let (la, ha) = bounds(a);
-        let (lb, hb) = bounds(b);
-        let (lo, hi) = (la.min(lb) - tol, ha.max(hb) + tol);
-        let (pa, pb) = (self.planes[ra as usize], self.planes[rb as usize]);
-        self.candidates.iter().all(|&k| {
-            if k == ra || k == rb {
-                return true;
-            }
-            let (lk, hk) = self.boxes[k as usize];
-            if lk.cmpgt(hi).any() || hk.cmplt(lo).any() {
-                return true;
-            }
-            let ck = &self.corners[k as usize];
-            if range(pa, ck).1 <= tol || range(pb, ck).1 <= tol {
-                return true;
-            }
-            let pk = self.planes[k as usize];
-            let (ra_, rb_) = (range(pk, a), range(pk, b));
-            (ra_.0 >= -tol && rb_.0 >= -tol) || (ra_.1 <= tol && rb_.1 <= tol)
-        })
-    }
-}
-
-/// Axis-aligned bounds of some points.
-pub fn bounds(p: &[DVec3]) -> (DVec3, DVec3) {
-    p.iter()
-        .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &q| {
-            (lo.min(q), hi.max(q))
-        })
-}
-
-/// Signed distances of `pts` from the plane `(normal, point)`, as (min, max).
-pub fn range(plane: (DVec3, DVec3), pts: &[DVec3]) -> (f64, f64) {
-    let (n, c) = plane;
-    pts.iter()
-        .map(|&q| n.dot(q - c))
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), d| {
-            (lo.min(d), hi.max(d))
-        })
 }
 
 /// Everything a link evaluation reads.
@@ -313,7 +202,11 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
         return (None, cost);
     }
     let (root_r, root_s) = (e.root[ri], e.root[si]);
-    if ctx.blockers.unoccluded(pr, root_r, ps, root_s) {
+    if ctx
+        .blockers
+        .unoccluded_within(pr, root_r, ps, root_s, PROOF_BUDGET)
+        == Some(true)
+    {
         let link = Link {
             src: s,
             f: f_open,
@@ -321,6 +214,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
             df: (fmax - fmin) + q_err,
             partial: false,
             vis: 1.0,
+            proved: true,
         };
         return (Some(link), cost);
     }
@@ -338,6 +232,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
             df: fmax + q_err,
             partial: true,
             vis: 0.0,
+            proved: false,
         }
     } else {
         let partial = seen.v < 1.0;
@@ -348,6 +243,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
             df: if partial { fmax } else { fmax - fmin } + q_err,
             partial,
             vis: seen.v,
+            proved: false,
         }
     };
     (Some(link), cost)
@@ -470,19 +366,5 @@ pub fn visible_fraction_n(ctx: &Context, r: u32, s: u32, n: usize) -> Seen {
     Seen {
         v,
         rays: segs.len() as u64,
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn range_and_bounds() {
-        let pts = [DVec3::new(0.0, 0.0, 1.0), DVec3::new(1.0, 2.0, -1.0)];
-        assert_eq!(range((DVec3::Z, DVec3::ZERO), &pts), (-1.0, 1.0));
-        let (lo, hi) = bounds(&pts);
-        assert_eq!(lo, DVec3::new(0.0, 0.0, -1.0));
-        assert_eq!(hi, DVec3::new(1.0, 2.0, 1.0));
     }
 }

@@ -30,6 +30,7 @@
 //! random streams are keyed on `(seed, receiver, source)`: the same seed gives the same
 //! hierarchy and the same bits on any number of threads.
 
+pub mod blockers;
 pub mod element;
 pub mod leaves;
 pub mod link;
@@ -42,8 +43,9 @@ use rayon::prelude::*;
 
 use crate::mesh::PatchSet;
 use crate::visibility::Visibility;
+use blockers::Blockers;
 use element::Elements;
-use link::{Blockers, Context, Cost, Link, Tolerance};
+use link::{Context, Cost, Link, Tolerance};
 use refine::{Decision, Oracle};
 use solve::{Gather, Materials, SolveStats, State};
 
@@ -663,23 +665,23 @@ pub fn gather_lists(
                     // and the source, as for a link). Nor does a link that rays found
                     // visible from `a` prove that the leaf sees all of `s` (a leaf beside a
                     // box sees less of the wall behind it than its parent): unless the
-                    // blockers' proof holds for the leaf itself, it traces its own too
-                    // (always for a partly buried leaf; otherwise where the proof can be
-                    // attempted at all, see `Blockers::provable`).
+                    // blockers' proof holds for the ancestor's link (then for every piece of
+                    // the pair) or for the leaf itself, it checks its own.
                     let bar = if k.f > 0.0 { k.err / k.f } else { 0.0 };
                     let v = if k.partial {
                         Sight::Trace
-                    } else if (e.partly[li] || ctx.blockers.provable())
-                        && !ctx.blockers.unoccluded(
+                    } else if k.proved
+                        || ctx.blockers.unoccluded_within(
                             e.corners(l),
                             e.root[li],
                             e.corners(k.src),
                             e.root[k.src as usize],
-                        )
+                            link::PROOF_BUDGET,
+                        ) == Some(true)
                     {
-                        Sight::Check(k.vis, bar)
-                    } else {
                         Sight::Given(k.vis, bar)
+                    } else {
+                        Sight::Check(k.vis, bar)
                     };
                     if let Some(en) = piece(k.src, v, &mut cost) {
                         stack.push(en);

@@ -28,8 +28,9 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::blockers::{bounds, range};
 use super::element::Elements;
-use super::link::{bounds, range, Link};
+use super::link::Link;
 use crate::formfactor::hemisphere::{basis, cosine_direction};
 use crate::sampling::Pcg32;
 use crate::visibility::Visibility;
@@ -346,6 +347,7 @@ mod tests {
             df: 0.2,
             partial: false,
             vis: 1.0,
+            proved: false,
         };
         let o = Oracle {
             elements: &e,
