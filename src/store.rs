@@ -4,7 +4,8 @@
 //! - `F.mtx`: the form-factor matrix, Matrix Market coordinate real general (1-based; SciPy
 //!   `scipy.io.mmread`, Julia `MatrixMarket.mmread` and sprs read it);
 //! - `stderr.mtx`: the standard error of each stored entry, same pattern;
-//! - `patches.csv`: one row per patch: id, area, centroid, normal, material, rho, E;
+//! - `patches.csv`: one row per patch: id, area, centroid, normal, object, material, rho,
+//!   E (names quoted as CSV quotes them when they hold a comma or a quote);
 //! - `provenance.json`: the settings that shaped the matrix (estimator and its settings,
 //!   seed, patch edge length, repair), crate version, scene, patch count, a hash of the
 //!   patch geometry and the SHA-256 of each of the three files above;
@@ -35,7 +36,7 @@ use crate::input::open_regular;
 use crate::matrix::FormFactors;
 use crate::mesh::PatchSet;
 use crate::output::folder::{hex, sha256_file};
-use crate::output::{write_atomic, write_folder, FolderKind};
+use crate::output::{csv_field, write_atomic, write_folder, FolderKind};
 use crate::repair::Repair;
 
 /// The folder layout version [`fn@write`] produces and [`fn@read`] accepts.
@@ -230,13 +231,13 @@ fn write_files(
     write_mtx(&dir.join("F.mtx"), ff, ff.f.data())?;
     write_mtx(&dir.join("stderr.mtx"), ff, &ff.se)?;
     let mut csv =
-        String::from("id,area,cx,cy,cz,nx,ny,nz,material,rho_r,rho_g,rho_b,e_r,e_g,e_b\n");
+        String::from("id,area,cx,cy,cz,nx,ny,nz,object,material,rho_r,rho_g,rho_b,e_r,e_g,e_b\n");
     for i in 0..patches.len() {
         let (c, n) = (patches.centroid[i], patches.normal[i]);
         let m = &patches.materials[patches.material[i] as usize];
         let _ = writeln!(
             csv,
-            "{i},{:e},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{i},{:e},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             patches.area[i],
             c.x,
             c.y,
@@ -244,7 +245,8 @@ fn write_files(
             n.x,
             n.y,
             n.z,
-            m.name.replace(',', "_"),
+            csv_field(patches.object_name(i)),
+            csv_field(&m.name),
             m.rho[0],
             m.rho[1],
             m.rho[2],

@@ -44,6 +44,16 @@ pub use self::vertex::{
 
 use crate::error::{Error, Result};
 
+/// A CSV field (RFC 4180): quoted when it holds a comma, a quote, or a line break, with
+/// quotes doubled; as written, pandas, Python's `csv` and spreadsheets read it back.
+pub fn csv_field(s: &str) -> String {
+    if s.contains([',', '"', '\n', '\r']) {
+        format!("\"{}\"", s.replace('"', "\"\""))
+    } else {
+        s.to_string()
+    }
+}
+
 /// Writes `path` whole or not at all.
 ///
 /// `f` writes the complete file to a temporary path in the same folder (so that the final
