@@ -928,11 +928,22 @@ pub fn run() -> Result<()> {
                 )?;
             }
             writeln!(o, "{}", pipeline::format_times(&s.stages, s.peak_memory))?;
-            writeln!(
-                o,
-                "wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json, manifest.json}}",
-                args.output.display()
-            )?;
+            if p.objects_skipped.is_empty() {
+                writeln!(
+                    o,
+                    "wrote {}/{{F.mtx, stderr.mtx, patches.csv, objects.csv, objects_F.csv, \
+                     objects_stderr.csv, provenance.json, manifest.json}}",
+                    args.output.display()
+                )?;
+            } else {
+                writeln!(
+                    o,
+                    "warning: no object tables: {}\nwrote {}/{{F.mtx, stderr.mtx, \
+                     patches.csv, provenance.json, manifest.json}}",
+                    p.objects_skipped,
+                    args.output.display()
+                )?;
+            }
             print!("{}", pipeline::wrap(&o, pipeline::WIDTH));
             Ok(())
         }

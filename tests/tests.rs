@@ -6,6 +6,7 @@ mod fuzz;
 mod geometry;
 mod hierarchy;
 mod invalid;
+mod objects;
 mod polygons;
 mod reliability;
 mod shelf;
