@@ -4,6 +4,7 @@ mod bake;
 mod formfactors;
 mod fuzz;
 mod geometry;
+mod gltf;
 mod hierarchy;
 mod invalid;
 mod objects;
