@@ -99,7 +99,7 @@ impl ObjectFactors {
             count[patches.object[i] as usize] += 1;
             area[patches.object[i] as usize] += patches.area[i];
         }
-        if let Some(k) = (0..n).find(|&k| !(area[k] > 0.0)) {
+        if let Some(k) = (0..n).find(|&k| area[k].is_nan() || area[k] <= 0.0) {
             return Err(bad(format!(
                 "object `{}` has area {} and {} patches: no factor from it is defined",
                 patches.objects[k], area[k], count[k]

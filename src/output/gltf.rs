@@ -166,7 +166,6 @@ pub fn glb_bytes(
         },
         extensions: Some(json::extensions::material::Material {
             unlit: Some(json::extensions::material::Unlit {}),
-            ..Default::default()
         }),
         ..Default::default()
     });
