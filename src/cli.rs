@@ -31,7 +31,8 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Compute form factors, solve, and write radiosity.exr, mesh.ply and preview.png.
+    /// Compute form factors, solve, and write radiosity.exr, mesh.ply, mesh.glb and
+    /// preview.png.
     Bake(BakeArgs),
     /// Compute form factors only and store them (Matrix Market, CSV, JSON) for reuse.
     Factors(FactorsArgs),
@@ -435,6 +436,10 @@ struct BakeArgs {
     /// `#@camera` comment.
     #[arg(long, value_name = "EYE,TARGET[,UP[,FOV]]", allow_hyphen_values = true)]
     camera: Option<String>,
+    /// Length unit of the scene's coordinates, over its `#@units` line: mesh.glb is
+    /// written in metres, scaled by it (with neither, coordinates are taken as metres).
+    #[arg(long, value_name = "mm|cm|m", value_parser = parse_units)]
+    units: Option<radiosity::scene::Units>,
     /// Reuse form factors stored by `radiosity factors` (same scene and subdivision).
     #[arg(long, value_name = "DIR")]
     factors: Option<PathBuf>,
@@ -559,6 +564,11 @@ fn parse_width(s: &str) -> Result<radiosity::simd::Width> {
 }
 
 /// Parses `--camera`: 6, 9 or 10 comma-separated numbers (see [`BakeArgs::camera`]).
+fn parse_units(s: &str) -> std::result::Result<radiosity::scene::Units, String> {
+    radiosity::scene::Units::parse(s)
+        .ok_or_else(|| format!("`{s}` is not a unit: give mm, cm or m"))
+}
+
 fn parse_camera(s: &str) -> Result<radiosity::scene::Camera> {
     use glam::Vec3;
     let form = "expected EX,EY,EZ,TX,TY,TZ[,UX,UY,UZ[,FOV]]";
@@ -722,6 +732,7 @@ fn bake(args: &BakeArgs) -> Result<()> {
         preview: parse_size(&args.size)?,
         exposure: parse_exposure(&args.exposure)?,
         camera: args.camera.as_deref().map(parse_camera).transpose()?,
+        units: args.units,
         crease_deg: 30.0,
         factors: args.factors.clone(),
         steps: args.steps.clone(),
@@ -928,11 +939,22 @@ pub fn run() -> Result<()> {
                 )?;
             }
             writeln!(o, "{}", pipeline::format_times(&s.stages, s.peak_memory))?;
-            writeln!(
-                o,
-                "wrote {}/{{F.mtx, stderr.mtx, patches.csv, provenance.json, manifest.json}}",
-                args.output.display()
-            )?;
+            if p.objects_skipped.is_empty() {
+                writeln!(
+                    o,
+                    "wrote {}/{{F.mtx, stderr.mtx, patches.csv, objects.csv, objects_F.csv, \
+                     objects_stderr.csv, provenance.json, manifest.json}}",
+                    args.output.display()
+                )?;
+            } else {
+                writeln!(
+                    o,
+                    "warning: no object tables: {}\nwrote {}/{{F.mtx, stderr.mtx, \
+                     patches.csv, provenance.json, manifest.json}}",
+                    p.objects_skipped,
+                    args.output.display()
+                )?;
+            }
             print!("{}", pipeline::wrap(&o, pipeline::WIDTH));
             Ok(())
         }

@@ -8,6 +8,8 @@
 //! `Scene` ([`scene`]) → `PatchSet` ([`mesh`]) → `FormFactors` ([`formfactor`] over
 //! [`visibility`], assembled by [`matrix`]) → radiosity ([`solve`]) → per-vertex values and
 //! files ([`output`]); [`pipeline`] is the only place that knows the order and times it.
+//! Stored factors ([`store`]) carry the matrix aggregated over the scene's named objects
+//! ([`objects`]).
 //! The hierarchical path branches after the mesh: root patches → element tree and links
 //! refined where the light needs them, solved on the tree ([`hierarchy`], over
 //! [`visibility`] and the exact integral of [`formfactor::exact`]) → the leaves as a
@@ -20,7 +22,7 @@
 //! The modules form an acyclic graph: a module refers only to modules upstream of it
 //! (`error`, `input`, `budget`, `scene`, `mesh`, `sampling`, `simd`, `visibility`,
 //! `analytic`, `matrix`, `formfactor`, `hierarchy`, `repair`, `solve`, `thermal`, `output`,
-//! `store`, `pipeline`, then the consumers `study`, `suite` and `bench`). The test
+//! `objects`, `store`, `pipeline`, then the consumers `study`, `suite` and `bench`). The test
 //! `tests::module_graph_is_acyclic` at
 //! the bottom of this file checks it: it reads every file under `src/`, takes each
 //! `crate::MODULE` path in the code before the file's `#[cfg(test)]` (comments and doc
@@ -45,6 +47,7 @@ pub mod hierarchy;
 pub mod input;
 pub mod matrix;
 pub mod mesh;
+pub mod objects;
 pub mod output;
 pub mod pipeline;
 pub mod repair;

@@ -1,6 +1,6 @@
 //! The bake pipeline: the only place that knows the order of the stages, and times them.
 //!
-//! `load → mesh → BVH → form factors → solve → per-vertex → EXR, PLY, preview`.
+//! `load → mesh → BVH → form factors → solve → per-vertex → EXR, PLY, glTF, preview`.
 //! Each stage takes the previous result by reference and returns a new value; the
 //! [`Observer`] hears about stage starts, progress and ends (the CLI draws bars from it),
 //! and the returned [`BakeSummary`] carries times, peak memory and accuracy figures.
@@ -18,7 +18,7 @@ use crate::matrix::{Diagnostics, FormFactors};
 use crate::mesh::{PatchSet, Resolution};
 use crate::output::{self, Exposure, FolderKind};
 use crate::repair::{self, Repair, RepairReport};
-use crate::scene::Scene;
+use crate::scene::{Scene, Units};
 use crate::solve::{self, Method, Options, SolveReport, System};
 use crate::store;
 use crate::visibility::Visibility;
@@ -143,6 +143,9 @@ pub struct BakeConfig {
     pub max_memory: Option<u64>,
     /// Preview camera over the scene's `#@camera` (or the framing one).
     pub camera: Option<crate::scene::Camera>,
+    /// Length unit of the scene's coordinates, over its `#@units` line: `mesh.glb` is
+    /// scaled by it to metres (none at all: the coordinates are taken as metres).
+    pub units: Option<Units>,
 }
 
 impl Default for BakeConfig {
@@ -169,6 +172,7 @@ impl Default for BakeConfig {
             hierarchy: None,
             max_memory: None,
             camera: None,
+            units: None,
         }
     }
 }
@@ -464,7 +468,8 @@ pub fn write_step_previews(
     Ok(files)
 }
 
-/// Runs the whole bake and writes `radiosity.exr`, `mesh.ply` and `preview.png`.
+/// Runs the whole bake and writes `radiosity.exr`, `mesh.ply`, `mesh.glb` and
+/// `preview.png`.
 pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     let mut timer = Timer {
         obs,
@@ -531,7 +536,7 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         output::interpolate(&patches, &b, cfg.crease_deg)
     });
     let files = timer.run("write", 0, || -> Result<Vec<PathBuf>> {
-        write_bake(cfg, &scene, &verts, |dir, camera, exposure| {
+        write_bake(cfg, &scene, &patches, &verts, |dir, camera, exposure| {
             if cfg.steps.is_empty() {
                 return Ok(Vec::new());
             }
@@ -571,12 +576,14 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     })
 }
 
-/// Writes `radiosity.exr`, `preview.png` and `mesh.ply` of a bake, and what `extra`
-/// writes into the same folder (given the folder, the camera and the preview's exposure),
-/// as one folder ([`output::write_folder`]); returns the files' final paths.
+/// Writes `radiosity.exr`, `preview.png`, `mesh.ply` and `mesh.glb` of a bake (`patches`
+/// are the ones `verts` was made from: they name each triangle's object), and what
+/// `extra` writes into the same folder (given the folder, the camera and the preview's
+/// exposure), as one folder ([`output::write_folder`]); returns the files' final paths.
 fn write_bake(
     cfg: &BakeConfig,
     scene: &Scene,
+    patches: &PatchSet,
     verts: &output::VertexRadiosity,
     extra: impl FnOnce(&std::path::Path, &crate::scene::Camera, f32) -> Result<Vec<PathBuf>>,
 ) -> Result<Vec<PathBuf>> {
@@ -586,10 +593,32 @@ fn write_bake(
         let (w, h) = cfg.preview;
         let image = output::render_preview(verts, &camera, w, h, cfg.exposure);
         output::write_png(&dir.join("preview.png"), &image)?;
-        output::write_ply(&dir.join("mesh.ply"), verts, image.exposure)?;
+        let units = cfg.units.or(scene.units);
+        output::write_ply(&dir.join("mesh.ply"), verts, image.exposure, units)?;
+        let of_triangle: Vec<u32> = verts
+            .patch_of_triangle
+            .iter()
+            .map(|&p| patches.object[p as usize])
+            .collect();
+        let unit_name = units.map_or("not given: taken as m", Units::symbol);
+        output::write_glb(
+            &dir.join("mesh.glb"),
+            verts,
+            output::Objects {
+                names: &patches.objects,
+                of_triangle: &of_triangle,
+            },
+            &output::GlbSettings {
+                scene: &scene.name,
+                metres_per_unit: units.map_or(1.0, Units::metres),
+                units: unit_name,
+                exposure: image.exposure,
+            },
+        )?;
         let mut names: Vec<PathBuf> = vec![
             "radiosity.exr".into(),
             "mesh.ply".into(),
+            "mesh.glb".into(),
             "preview.png".into(),
         ];
         let more = extra(dir, &camera, image.exposure)?;
@@ -635,7 +664,7 @@ fn bake_hierarchical(
         output::interpolate_with(&leaves, &b, cfg.crease_deg, output::Nodal::Linear)
     });
     let files = timer.run("write", 0, || {
-        write_bake(cfg, &scene, &verts, |_, _, _| Ok(Vec::new()))
+        write_bake(cfg, &scene, &leaves, &verts, |_, _, _| Ok(Vec::new()))
     })?;
     let r = sol.report;
     let last = r.passes.last().copied().unwrap_or_default();

@@ -4,17 +4,24 @@
 //! - `F.mtx`: the form-factor matrix, Matrix Market coordinate real general (1-based; SciPy
 //!   `scipy.io.mmread`, Julia `MatrixMarket.mmread` and sprs read it);
 //! - `stderr.mtx`: the standard error of each stored entry, same pattern;
-//! - `patches.csv`: one row per patch: id, area, centroid, normal, material, rho, E;
+//! - `patches.csv`: one row per patch: id, area, centroid, normal, object, material, rho,
+//!   E (names quoted as CSV quotes them when they hold a comma or a quote);
+//! - `objects.csv`, `objects_F.csv`, `objects_stderr.csv`: the factors between the scene's
+//!   objects (area-weighted sums of the patch factors) and their standard errors, as
+//!   tables named by object ([`crate::objects`]); left out, with a warning, for a scene of
+//!   more than [`crate::objects::MAX_OBJECTS`] objects;
 //! - `provenance.json`: the settings that shaped the matrix (estimator and its settings,
 //!   seed, patch edge length, repair), crate version, scene, patch count, a hash of the
-//!   patch geometry and the SHA-256 of each of the three files above;
+//!   patch geometry and the SHA-256 of each of the files above;
 //! - `manifest.json`: the run that wrote the folder (see [`crate::output::folder`]).
 //!
 //! The folder is written whole ([`write_folder`]): into a temporary sibling, renamed into
 //! place in one step. `bake --factors DIR` reads it back and refuses a folder whose patch
 //! count or geometry hash differs from the scene being baked (reflectances and emissions may
 //! change, they are not part of the hash; geometry and subdivision may not), or whose files
-//! are not the ones the provenance records (another run's matrix, an edited value). Malformed
+//! are not the ones the provenance records (another run's matrix, an edited value; the
+//! object tables are checked when the provenance records them: folders written before
+//! they existed have none). Malformed
 //! Matrix Market files are refused with the file and the first bad line, never trusted for
 //! an allocation: a header's entry count is capped by what the file's length can hold, every
 //! index is checked against the patch count, entries must come in the order this crate
@@ -34,15 +41,20 @@ use crate::error::{Error, Result};
 use crate::input::open_regular;
 use crate::matrix::FormFactors;
 use crate::mesh::PatchSet;
+use crate::objects::{ObjectFactors, MAX_OBJECTS};
 use crate::output::folder::{hex, sha256_file};
-use crate::output::{write_atomic, write_folder, FolderKind};
+use crate::output::{csv_field, write_atomic, write_folder, FolderKind};
 use crate::repair::Repair;
 
 /// The folder layout version [`fn@write`] produces and [`fn@read`] accepts.
 pub const FORMAT: u32 = 2;
 
-/// The files whose SHA-256 the provenance records.
+/// The files whose SHA-256 the provenance records, and [`fn@read`] requires.
 pub const HASHED: [&str; 3] = ["F.mtx", "stderr.mtx", "patches.csv"];
+
+/// The object tables ([`crate::objects`]): hashed in the provenance when written, and then
+/// checked by [`fn@read`].
+pub const OBJECT_TABLES: [&str; 3] = ["objects.csv", "objects_F.csv", "objects_stderr.csv"];
 
 /// The provenance record stored beside a matrix.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -75,8 +87,12 @@ pub struct Provenance {
     /// before it was recorded: not known).
     #[serde(default)]
     pub replicates: usize,
-    /// SHA-256 (lower-case hex) of each file of [`HASHED`], by name.
+    /// SHA-256 (lower-case hex) of each file of [`HASHED`] and of [`OBJECT_TABLES`] when
+    /// written, by name.
     pub sha256: BTreeMap<String, String>,
+    /// Why the object tables were not written (empty when they were).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub objects_skipped: String,
 }
 
 /// FNV-1a (64-bit) of the patch corner positions and corner counts, as hex.
@@ -230,13 +246,13 @@ fn write_files(
     write_mtx(&dir.join("F.mtx"), ff, ff.f.data())?;
     write_mtx(&dir.join("stderr.mtx"), ff, &ff.se)?;
     let mut csv =
-        String::from("id,area,cx,cy,cz,nx,ny,nz,material,rho_r,rho_g,rho_b,e_r,e_g,e_b\n");
+        String::from("id,area,cx,cy,cz,nx,ny,nz,object,material,rho_r,rho_g,rho_b,e_r,e_g,e_b\n");
     for i in 0..patches.len() {
         let (c, n) = (patches.centroid[i], patches.normal[i]);
         let m = &patches.materials[patches.material[i] as usize];
         let _ = writeln!(
             csv,
-            "{i},{:e},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{i},{:e},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             patches.area[i],
             c.x,
             c.y,
@@ -244,7 +260,8 @@ fn write_files(
             n.x,
             n.y,
             n.z,
-            m.name.replace(',', "_"),
+            csv_field(patches.object_name(i)),
+            csv_field(&m.name),
             m.rho[0],
             m.rho[1],
             m.rho[2],
@@ -253,14 +270,32 @@ fn write_files(
             m.emit[2]
         );
     }
-    let csv_path = dir.join("patches.csv");
-    write_atomic(&csv_path, |tmp| {
-        std::fs::write(tmp, &csv).map_err(|e| Error::io(tmp, e))
-    })?;
+    let text = |name: &str, body: &str| {
+        write_atomic(&dir.join(name), |tmp| {
+            std::fs::write(tmp, body).map_err(|e| Error::io(tmp, e))
+        })
+    };
+    text("patches.csv", &csv)?;
     let mut sha256 = BTreeMap::new();
     for name in HASHED {
         sha256.insert(name.to_string(), sha256_file(&dir.join(name))?.1);
     }
+    let objects_skipped = if patches.objects.len() > MAX_OBJECTS {
+        format!(
+            "{} objects, more than the {MAX_OBJECTS} the object tables are made for",
+            patches.objects.len()
+        )
+    } else {
+        let o = ObjectFactors::aggregate(patches, ff)?;
+        let [list, f, se] = OBJECT_TABLES;
+        text(list, &o.objects_csv())?;
+        text(f, &o.matrix_csv(&o.f))?;
+        text(se, &o.matrix_csv(&o.se))?;
+        for name in OBJECT_TABLES {
+            sha256.insert(name.to_string(), sha256_file(&dir.join(name))?.1);
+        }
+        String::new()
+    };
     let prov = Provenance {
         format: FORMAT,
         writer: format!("radiosity {}", env!("CARGO_PKG_VERSION")),
@@ -276,6 +311,7 @@ fn write_files(
         repair: format!("{repair:?}"),
         replicates: ff.replicates,
         sha256,
+        objects_skipped,
     };
     let prov_path = dir.join("provenance.json");
     let json = serde_json::to_string_pretty(&prov).map_err(|e| Error::Output {
@@ -638,6 +674,13 @@ pub fn read(dir: &Path, patches: &PatchSet) -> Result<FormFactors> {
     let csv_path = dir.join("patches.csv");
     open_regular(&csv_path)?;
     check_hash(dir, &prov, "patches.csv", &sha256_file(&csv_path)?.1)?;
+    for name in OBJECT_TABLES {
+        if prov.sha256.contains_key(name) {
+            let path = dir.join(name);
+            open_regular(&path)?;
+            check_hash(dir, &prov, name, &sha256_file(&path)?.1)?;
+        }
+    }
     let f = read_mtx(&dir.join("F.mtx"), n, Values::FormFactors, None)?;
     check_hash(dir, &prov, "F.mtx", &f.sha256)?;
     let se = read_mtx(

@@ -32,7 +32,7 @@ fn key(p: DVec3) -> [u64; 3] {
 }
 
 /// The leaves of `e` as a patch set (patch `k` is leaf `leaves[k]`), with materials,
-/// faces and scale copied from the root patch set, and the radiosity of each.
+/// objects, faces and scale copied from the root patch set, and the radiosity of each.
 pub fn leaf_mesh(
     e: &Elements,
     roots: &PatchSet,
@@ -42,6 +42,7 @@ pub fn leaf_mesh(
     let mut set = PatchSet {
         scene: roots.scene.clone(),
         materials: roots.materials.clone(),
+        objects: roots.objects.clone(),
         diagonal: roots.diagonal,
         max_edge: roots.max_edge,
         ..Default::default()
@@ -86,6 +87,7 @@ pub fn leaf_mesh(
         set.normal.push(e.normal[li]);
         set.centroid.push(e.centre[li]);
         set.material.push(roots.material[root]);
+        set.object.push(roots.object[root]);
         set.face.push(roots.face[root]);
         values.push(b[li]);
         if boundary.len() == m {
@@ -148,6 +150,7 @@ mod tests {
         e.split(kids[0]);
         let roots = PatchSet {
             material: vec![0, 0],
+            object: vec![0, 0],
             face: vec![0, 1],
             ..Default::default()
         };

@@ -1,7 +1,8 @@
 //! Patches: the scene's faces subdivided into small planar polygons.
 //!
 //! A patch is a handle (its index `i`, stored as `u32`) into the flat arrays of a [`PatchSet`]:
-//! corners, area, normal, centroid, material (the pbrt-v4 layout: no object owns geometry).
+//! corners, area, normal, centroid, material, object (the pbrt-v4 layout: no object owns
+//! geometry; a patch only names its scene object, by index into [`PatchSet::objects`]).
 //! Quads are split into an `nu x nv` grid of quads and triangles into `n^2` similar
 //! triangles, with `nu`, `nv`, `n` chosen so that no patch edge is longer than the target
 //! length; a target patch count is turned into that length by a short search.
@@ -52,8 +53,12 @@ pub struct PatchSet {
     pub material: Vec<u32>,
     /// Index of the scene face each patch came from.
     pub face: Vec<u32>,
+    /// Object index of each patch (into `objects`).
+    pub object: Vec<u32>,
     /// Materials (copied from the scene).
     pub materials: Vec<Material>,
+    /// Object names (copied from the scene, [`Scene::objects`]).
+    pub objects: Vec<String>,
     /// Patch triangles (one or two per patch), for visibility and output.
     pub triangles: Vec<[u32; 3]>,
     /// Patch of each triangle.
@@ -80,6 +85,11 @@ impl PatchSet {
     /// Reflectance of patch `i`.
     pub fn rho(&self, i: usize) -> [f64; 3] {
         self.materials[self.material[i] as usize].rho
+    }
+
+    /// Name of the object of patch `i`.
+    pub fn object_name(&self, i: usize) -> &str {
+        &self.objects[self.object[i] as usize]
     }
 
     /// Emission of patch `i`.
@@ -158,6 +168,7 @@ impl PatchSet {
         let mut set = PatchSet {
             scene: scene.name.clone(),
             materials: scene.materials.clone(),
+            objects: scene.objects.clone(),
             diagonal,
             magnitude,
             max_edge,
@@ -197,7 +208,7 @@ impl PatchSet {
             for b in 0..nv {
                 for a in 0..nu {
                     let c = [at(a, b), at(a + 1, b), at(a + 1, b + 1), at(a, b + 1)];
-                    self.push_patch(c, face.material, fi);
+                    self.push_patch(c, face, fi);
                 }
             }
         } else {
@@ -219,17 +230,17 @@ impl PatchSet {
                 for a in 0..(n - r) {
                     let (v0, v1) = (row_start[r] + a as u32, row_start[r] + a as u32 + 1);
                     let v2 = row_start[r + 1] + a as u32;
-                    self.push_patch([v0, v1, v2, NONE], face.material, fi);
+                    self.push_patch([v0, v1, v2, NONE], face, fi);
                     if a + 1 < n - r {
                         let v3 = row_start[r + 1] + a as u32 + 1;
-                        self.push_patch([v1, v3, v2, NONE], face.material, fi);
+                        self.push_patch([v1, v3, v2, NONE], face, fi);
                     }
                 }
             }
         }
     }
 
-    fn push_patch(&mut self, c: [u32; 4], material: u32, face: u32) {
+    fn push_patch(&mut self, c: [u32; 4], from: &Face, face: u32) {
         let n = if c[3] == NONE { 3 } else { 4 };
         let pts: Vec<DVec3> = c[..n].iter().map(|&k| self.vertices[k as usize]).collect();
         let mut newell = DVec3::ZERO;
@@ -248,7 +259,8 @@ impl PatchSet {
         self.normal.push(newell.normalize_or_zero());
         self.centroid
             .push(centroid / area_sum.max(f64::MIN_POSITIVE));
-        self.material.push(material);
+        self.material.push(from.material);
+        self.object.push(from.object);
         self.face.push(face);
         self.triangles.push([c[0], c[1], c[2]]);
         self.tri_patch.push(id);

@@ -41,7 +41,8 @@ pub const MANIFEST: &str = "manifest.json";
 pub enum FolderKind {
     /// A bake: `radiosity.exr`, `mesh.ply`, previews.
     Bake,
-    /// A factors folder: `F.mtx`, `stderr.mtx`, `patches.csv`, `provenance.json`.
+    /// A factors folder: `F.mtx`, `stderr.mtx`, `patches.csv`, the object tables,
+    /// `provenance.json`.
     Factors,
     /// A thermal solution: `patches.csv`, `surfaces.csv`, `thermal.exr`, `mesh.ply`.
     Thermal,

@@ -10,6 +10,8 @@
 //!   ([`write_exr`], [`read_exr`]);
 //! - [`ply`]: the same mesh as a binary PLY with vertex colours, for Blender or MeshLab
 //!   ([`write_ply`]);
+//! - [`gltf`]: the same mesh as binary glTF 2.0, one node per scene object, in metres
+//!   ([`write_glb`]);
 //! - [`preview`]: a small software rasterizer that renders the bake from the scene's camera
 //!   into an 8-bit sRGB image ([`render_preview`], [`write_png`]);
 //! - [`thermal`]: the thermal mode's per-patch and per-surface tables as CSV, and its
@@ -23,6 +25,7 @@
 pub mod chart;
 pub mod exr;
 pub mod folder;
+pub mod gltf;
 pub mod ply;
 pub mod preview;
 pub mod thermal;
@@ -35,6 +38,7 @@ pub use self::exr::{
     read_exr, read_vertex_channels, write_exr, write_vertex_channels, ExrBake, VertexChannels,
 };
 pub use self::folder::{check_folder, write_folder, FolderKind, Manifest};
+pub use self::gltf::{write_glb, GlbSettings, Objects};
 pub use self::ply::{write_ply, write_ply_with};
 pub use self::preview::{render_preview, write_png, Exposure, Image};
 pub use self::vertex::{
@@ -43,6 +47,16 @@ pub use self::vertex::{
 };
 
 use crate::error::{Error, Result};
+
+/// A CSV field (RFC 4180): quoted when it holds a comma, a quote, or a line break, with
+/// quotes doubled; as written, pandas, Python's `csv` and spreadsheets read it back.
+pub fn csv_field(s: &str) -> String {
+    if s.contains([',', '"', '\n', '\r']) {
+        format!("\"{}\"", s.replace('"', "\"\""))
+    } else {
+        s.to_string()
+    }
+}
 
 /// Writes `path` whole or not at all.
 ///

@@ -7,6 +7,8 @@
 //! ply
 //! format binary_little_endian 1.0
 //! comment radiosity <version> per-vertex radiosity; red green blue = sRGB at exposure <e>
+//! comment units <mm | cm | m | not given ...>
+//! comment up +y
 //! element vertex <n>
 //! property float x
 //! property float y
@@ -26,7 +28,10 @@
 //! ```
 //!
 //! `red green blue` are display colours made by the same tone mapping as the preview
-//! ([`tone_map`]: exposure, clamp, sRGB); `radiosity_*` are the linear values.
+//! ([`tone_map`]: exposure, clamp, sRGB); `radiosity_*` are the linear values. Positions
+//! are in the scene's units, as loaded (the `units` comment names them when the scene or
+//! `--units` does), with +Y up, the OBJ convention; `mesh.glb` has the same mesh in
+//! metres ([`super::gltf`]).
 //!
 //! [`write_ply_with`] writes the same layout with other colours, other float properties in
 //! place of `radiosity_*` and another comment (the thermal mode's `mesh.ply`).
@@ -38,10 +43,20 @@ use super::preview::tone_map;
 use super::vertex::VertexRadiosity;
 use super::write_atomic;
 use crate::error::{Error, Result};
+use crate::scene::Units;
+
+/// The up-axis comment of every PLY written here.
+pub const UP: &str = "up +y";
 
 /// Writes `v` to `path` as a binary little-endian PLY with vertex colours tone-mapped at
-/// `exposure` (a linear scale, e.g. [`Image::exposure`](super::Image::exposure)).
-pub fn write_ply(path: &Path, v: &VertexRadiosity, exposure: f32) -> Result<()> {
+/// `exposure` (a linear scale, e.g. [`Image::exposure`](super::Image::exposure)); `units`
+/// is the scene's length unit, when known, for the header.
+pub fn write_ply(
+    path: &Path,
+    v: &VertexRadiosity,
+    exposure: f32,
+    units: Option<Units>,
+) -> Result<()> {
     v.checked_len(path)?;
     let colours: Vec<[u8; 3]> = v.rgb.iter().map(|&c| tone_map(c, exposure)).collect();
     let plane = |c: usize| -> Vec<f32> { v.rgb.iter().map(|x| x[c]).collect() };
@@ -50,10 +65,14 @@ pub fn write_ply(path: &Path, v: &VertexRadiosity, exposure: f32) -> Result<()> 
         "radiosity {} per-vertex radiosity; red green blue = sRGB at exposure {exposure}",
         env!("CARGO_PKG_VERSION")
     );
+    let units = match units {
+        Some(u) => format!("units {}", u.symbol()),
+        None => "units not given (no #@units line in the scene, no --units)".to_string(),
+    };
     write_ply_with(
         path,
         v,
-        &comment,
+        &[&comment, &units, UP],
         &colours,
         &[
             ("radiosity_r", &r),
@@ -66,12 +85,12 @@ pub fn write_ply(path: &Path, v: &VertexRadiosity, exposure: f32) -> Result<()> 
 /// Writes the mesh of `v` (positions, normals, triangles; `v.rgb` is not written) as a
 /// binary little-endian PLY whose vertices carry `x y z nx ny nz`, the 8-bit `red green
 /// blue` of `colours`, then the float properties `values` (name, one value per vertex), in
-/// that order, with the header line `comment <comment>`. The generic layer under
+/// that order, with a header line `comment <c>` for each of `comments`. The generic layer under
 /// [`write_ply`] and the thermal mode's `mesh.ply`.
 pub fn write_ply_with(
     path: &Path,
     v: &VertexRadiosity,
-    comment: &str,
+    comments: &[&str],
     colours: &[[u8; 3]],
     values: &[(&str, &[f32])],
 ) -> Result<()> {
@@ -94,7 +113,7 @@ pub fn write_ply_with(
             x.len()
         ));
     }
-    if comment.contains(['\n', '\r']) {
+    if comments.iter().any(|c| c.contains(['\n', '\r'])) {
         return refuse("a PLY comment must be one line".into());
     }
     if let Some(t) = v
@@ -107,7 +126,7 @@ pub fn write_ply_with(
         ));
     }
     let names: Vec<&str> = values.iter().map(|(name, _)| *name).collect();
-    let head = header(n, v.triangles.len(), comment, &names);
+    let head = header(n, v.triangles.len(), comments, &names);
     write_atomic(path, |tmp| {
         let file = std::fs::File::create(tmp).map_err(|e| Error::io(tmp, e))?;
         let mut w = BufWriter::new(file);
@@ -119,9 +138,11 @@ pub fn write_ply_with(
 
 /// The PLY header for `vertices` and `faces` with the float properties `values` after the
 /// colours (see the module docs).
-fn header(vertices: usize, faces: usize, comment: &str, values: &[&str]) -> String {
+fn header(vertices: usize, faces: usize, comments: &[&str], values: &[&str]) -> String {
     let mut h = String::from("ply\nformat binary_little_endian 1.0\n");
-    h += &format!("comment {comment}\n");
+    for c in comments {
+        h += &format!("comment {c}\n");
+    }
     h += &format!("element vertex {vertices}\n");
     for p in ["x", "y", "z", "nx", "ny", "nz"] {
         h += &format!("property float {p}\n");
@@ -190,7 +211,7 @@ mod tests {
     fn header_and_body_parse_back() {
         let v = quad();
         let path = test_dir("ply").join("bake.ply");
-        write_ply(&path, &v, 1.0).unwrap();
+        write_ply(&path, &v, 1.0, Some(Units::Millimetres)).unwrap();
         let bytes = std::fs::read(&path).unwrap();
         let end = b"end_header\n";
         let at = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
@@ -203,6 +224,7 @@ mod tests {
         assert!(lines.contains(&"property uchar red"));
         assert!(lines.contains(&"property float radiosity_b"));
         assert!(lines.contains(&"property list uchar int vertex_indices"));
+        assert_eq!(lines[3..5], ["comment units mm", "comment up +y"]);
         // Vertex record: 6 floats, 3 bytes, 3 floats; face record: 1 + 3 x 4 bytes.
         let vertex_size = 6 * 4 + 3 + 3 * 4;
         assert_eq!(bytes.len() - at, 4 * vertex_size + 2 * 13);
@@ -232,7 +254,7 @@ mod tests {
         v.triangles.push([0, 1, 9]);
         let path = test_dir("ply-bad").join("bake.ply");
         assert!(matches!(
-            write_ply(&path, &v, 1.0),
+            write_ply(&path, &v, 1.0, None),
             Err(Error::Output { .. })
         ));
         assert!(!path.exists());

@@ -241,7 +241,7 @@ pub fn write_ply(path: &Path, v: &VertexFields) -> Result<()> {
     write_ply_with(
         path,
         &v.mesh,
-        &comment,
+        &[&comment, super::ply::UP],
         &colours,
         &[("temperature", t), ("flux", q), ("quality", t)],
     )

@@ -532,6 +532,7 @@ pub(crate) mod testing {
                 set.normal.push(cr.normalize());
                 set.centroid.push((q[0] + q[1] + q[2] + q[3]) / 4.0);
                 set.material.push(material);
+                set.object.push(0);
                 set.face.push(face);
                 set.triangles.push([c[0], c[1], c[2]]);
                 set.triangles.push([c[0], c[2], c[3]]);
@@ -559,6 +560,7 @@ pub(crate) mod testing {
                     thermal: None,
                 })
                 .collect(),
+            objects: vec!["test".into()],
             ..Default::default()
         }
     }

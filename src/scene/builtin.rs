@@ -89,4 +89,29 @@ mod tests {
             s.require_emitter().unwrap();
         }
     }
+
+    #[test]
+    fn builtins_name_their_objects_and_the_cornell_box_its_units() {
+        let objects = |name: &str| super::load(name).unwrap().unwrap().objects;
+        assert_eq!(
+            objects("cornell"),
+            [
+                "floor",
+                "ceiling",
+                "back_wall",
+                "short_block",
+                "tall_block",
+                "light",
+                "red_wall",
+                "green_wall"
+            ]
+        );
+        assert_eq!(objects("plates-parallel"), ["emitter", "receiver"]);
+        assert_eq!(objects("plates-perpendicular"), ["emitter", "receiver"]);
+        assert_eq!(objects("cube"), ["z0", "z1", "y0", "y1", "x0", "x1"]);
+        assert_eq!(objects("shelf"), ["floor_A", "back_B", "top_C"]);
+        let cornell = super::load("cornell").unwrap().unwrap();
+        assert_eq!(cornell.units, Some(crate::scene::Units::Millimetres));
+        assert_eq!(super::load("cube").unwrap().unwrap().units, None);
+    }
 }

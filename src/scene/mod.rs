@@ -4,8 +4,10 @@
 //! vertices (any other simple polygon is meshed as written into triangles covering exactly
 //! its area, well shaped for the patch mesher: see [`polygon`]), each with a
 //! [`Material`] holding the RGB reflectance `rho` (MTL `Kd`, each channel in [0, 1)) and the
-//! RGB emission `emit` (MTL `Ke`, exitance units, >= 0). Nothing here knows about patches
-//! or rays: the `mesh` module turns a scene into patches.
+//! RGB emission `emit` (MTL `Ke`, exitance units, >= 0), and to an object: a name of
+//! [`Scene::objects`] (the OBJ `o` or `g` statement in force, see [`obj`]), which every
+//! patch, table row and output node made from the face keeps. Nothing here knows about
+//! patches or rays: the `mesh` module turns a scene into patches.
 
 pub mod builtin;
 pub mod obj;
@@ -136,6 +138,8 @@ pub struct Face {
     pub corners: [u32; 4],
     /// Index into [`Scene::materials`].
     pub material: u32,
+    /// Index into [`Scene::objects`].
+    pub object: u32,
     /// 1-based line of the OBJ file that defined the face (0 when generated).
     pub line: u32,
 }
@@ -161,6 +165,48 @@ impl Face {
     /// The corner indices actually used.
     pub fn corner_slice(&self) -> &[u32] {
         &self.corners[..self.len()]
+    }
+}
+
+/// A length unit of scene coordinates: what a `#@units` line (or `--units`) names, so
+/// that outputs in metres (glTF) can be scaled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Units {
+    /// Millimetres (`mm`).
+    Millimetres,
+    /// Centimetres (`cm`).
+    Centimetres,
+    /// Metres (`m`).
+    Metres,
+}
+
+impl Units {
+    /// The unit named `mm`, `cm` or `m`.
+    pub fn parse(s: &str) -> Option<Units> {
+        match s {
+            "mm" => Some(Units::Millimetres),
+            "cm" => Some(Units::Centimetres),
+            "m" => Some(Units::Metres),
+            _ => None,
+        }
+    }
+
+    /// The short name: `mm`, `cm` or `m`.
+    pub fn symbol(self) -> &'static str {
+        match self {
+            Units::Millimetres => "mm",
+            Units::Centimetres => "cm",
+            Units::Metres => "m",
+        }
+    }
+
+    /// Metres in one unit.
+    pub fn metres(self) -> f64 {
+        match self {
+            Units::Millimetres => 1e-3,
+            Units::Centimetres => 1e-2,
+            Units::Metres => 1.0,
+        }
     }
 }
 
@@ -214,6 +260,11 @@ pub struct Scene {
     pub faces: Vec<Face>,
     /// Materials referenced by the faces.
     pub materials: Vec<Material>,
+    /// Object names, each used by some face and none repeated: the OBJ `o` / `g` names,
+    /// or the scene's name for faces before any such statement.
+    pub objects: Vec<String>,
+    /// Length unit of the coordinates (from a `#@units` line), if the scene says.
+    pub units: Option<Units>,
     /// Preview camera (from a `#@camera` line), if the scene carries one.
     pub camera: Option<Camera>,
     /// Things the loader repaired or dropped (degenerate faces...), for the summary.

@@ -13,8 +13,15 @@
 //!   non-planar one split along its best diagonals with a warning naming the file and line,
 //!   one that is not simple (self-intersecting, touching itself) refused with its line.
 //!
+//! Objects: each face belongs to the object named by the last `o` or `g` statement before
+//! it (the two are read alike, as tobj reads them; `g a b` names the object `a b`), or,
+//! before any, to an object named after the scene (the file stem). Statements with the
+//! same name make one object; objects left without faces (an empty `o Camera` from
+//! Blender, or one whose faces were all degenerate) are dropped.
+//!
 //! A comment line `#@camera eye X Y Z target X Y Z up X Y Z fov DEGREES` sets the
-//! preview camera. In the MTL, a comment line `#@thermal emissivity E temperature K` or
+//! preview camera; `#@units mm`, `#@units cm` or `#@units m` says what length unit the
+//! coordinates are in (outputs in metres are scaled by it). In the MTL, a comment line `#@thermal emissivity E temperature K` or
 //! `#@thermal emissivity E flux W_PER_M2` after a `newmtl` gives that material's gray
 //! emissivity and boundary condition for the thermal mode ([`crate::scene::Thermal`]).
 
@@ -25,7 +32,7 @@ use std::path::{Path, PathBuf};
 use glam::{DVec3, Vec3};
 
 use super::polygon::{self, newell};
-use super::{Boundary, Camera, Face, Material, Scene, Thermal};
+use super::{Boundary, Camera, Face, Material, Scene, Thermal, Units};
 use crate::error::{Error, Result};
 use crate::input::{read_text, MAX_TEXT_BYTES};
 
@@ -58,7 +65,13 @@ struct Scan {
     face_lines: Vec<usize>,
     /// For each face, the `usemtl` line in force (an index into `usemtl`), if any.
     face_usemtl: Vec<Option<usize>>,
+    /// Object names in order of first use (`o`, `g`, or the scene's name).
+    objects: Vec<String>,
+    /// For each face, its object (an index into `objects`).
+    face_object: Vec<u32>,
     camera: Option<Camera>,
+    /// The `#@units` line's unit, and its line.
+    units: Option<(Units, usize)>,
 }
 
 /// Parses OBJ text. `path` names the source in messages; `mtl` resolves a `mtllib` name
@@ -69,7 +82,7 @@ pub fn parse(
     text: &str,
     mtl: &dyn Fn(&str) -> Result<(PathBuf, String)>,
 ) -> Result<Scene> {
-    let scan = scan_lines(path, text)?;
+    let scan = scan_lines(name, path, text)?;
     let mut materials: Vec<Material> = Vec::new();
     let mut mtl_warnings = Vec::new();
     for (lib, line) in &scan.mtllibs {
@@ -123,6 +136,8 @@ pub fn parse(
         positions: Vec::new(),
         faces: Vec::new(),
         materials,
+        objects: scan.objects.clone(),
+        units: scan.units.map(|(u, _)| u),
         camera: scan.camera,
         warnings: mtl_warnings,
     };
@@ -155,6 +170,7 @@ pub fn parse(
             start += arity;
             let line = scan.face_lines.get(face_no).copied().unwrap_or(0);
             let used = scan.face_usemtl.get(face_no).copied().flatten();
+            let object = scan.face_object.get(face_no).copied().unwrap_or(0);
             face_no += 1;
             let material = match used {
                 Some(u) => usemtl_material[u],
@@ -171,9 +187,10 @@ pub fn parse(
                     (scene.materials.len() - 1) as u32
                 }),
             };
-            add_polygon(&mut scene, path, &idx, material, line)?;
+            add_polygon(&mut scene, path, &idx, material, object, line)?;
         }
     }
+    drop_unused_objects(&mut scene);
     if scene.faces.is_empty() {
         return Err(Error::Scene {
             scene: scene.source.clone(),
@@ -232,14 +249,49 @@ fn check_f32(path: &Path, line: usize, what: &str, values: &[f64]) -> Result<()>
     }
 }
 
-fn scan_lines(path: &Path, text: &str) -> Result<Scan> {
+/// Keeps the objects some face uses, in their order, renumbering the faces' indices.
+fn drop_unused_objects(scene: &mut Scene) {
+    let mut used = vec![false; scene.objects.len()];
+    for f in &scene.faces {
+        used[f.object as usize] = true;
+    }
+    let mut new_index = vec![0u32; scene.objects.len()];
+    let mut kept = Vec::with_capacity(scene.objects.len());
+    for (k, name) in std::mem::take(&mut scene.objects).into_iter().enumerate() {
+        if used[k] {
+            new_index[k] = kept.len() as u32;
+            kept.push(name);
+        }
+    }
+    scene.objects = kept;
+    for f in &mut scene.faces {
+        f.object = new_index[f.object as usize];
+    }
+}
+
+/// The index of the object `name` in `objects`, added if new.
+fn object_index(objects: &mut Vec<String>, name: &str) -> u32 {
+    match objects.iter().position(|o| o == name) {
+        Some(k) => k as u32,
+        None => {
+            objects.push(name.to_string());
+            (objects.len() - 1) as u32
+        }
+    }
+}
+
+fn scan_lines(scene_name: &str, path: &Path, text: &str) -> Result<Scan> {
     let mut scan = Scan {
         mtllibs: Vec::new(),
         usemtl: Vec::new(),
         face_lines: Vec::new(),
         face_usemtl: Vec::new(),
+        objects: Vec::new(),
+        face_object: Vec::new(),
         camera: None,
+        units: None,
     };
+    let mut object: Option<u32> = None;
     let mut n_vertices = 0usize;
     for (k, raw) in text.lines().enumerate() {
         let line = k + 1;
@@ -280,6 +332,42 @@ fn scan_lines(path: &Path, text: &str) -> Result<Scan> {
                 }
                 scan.face_lines.push(line);
                 scan.face_usemtl.push(scan.usemtl.len().checked_sub(1));
+                let o = *object.get_or_insert_with(|| object_index(&mut scan.objects, scene_name));
+                scan.face_object.push(o);
+            }
+            "o" | "g" => {
+                let name = rest.join(" ");
+                let name = if name.is_empty() { scene_name } else { &name };
+                object = Some(object_index(&mut scan.objects, name));
+            }
+            "#@units" => {
+                let units = match rest {
+                    [u] => Units::parse(u),
+                    _ => None,
+                }
+                .ok_or_else(|| Error::Parse {
+                    path: path.to_path_buf(),
+                    line: Some(line),
+                    msg: format!(
+                        "#@units `{}`: expected `#@units mm`, `#@units cm` or `#@units m`",
+                        rest.join(" ")
+                    ),
+                })?;
+                match scan.units {
+                    Some((first, at)) if first != units => {
+                        return Err(Error::Parse {
+                            path: path.to_path_buf(),
+                            line: Some(line),
+                            msg: format!(
+                                "#@units {} contradicts `#@units {}` at line {at}",
+                                units.symbol(),
+                                first.symbol()
+                            ),
+                        })
+                    }
+                    Some(_) => {}
+                    None => scan.units = Some((units, line)),
+                }
             }
             "mtllib" => {
                 for lib in rest {
@@ -555,6 +643,7 @@ fn add_polygon(
     path: &Path,
     idx: &[u32],
     material: u32,
+    object: u32,
     line: usize,
 ) -> Result<()> {
     let mut corners: Vec<u32> = Vec::with_capacity(idx.len());
@@ -613,6 +702,7 @@ fn add_polygon(
         scene.faces.push(Face {
             corners: c,
             material,
+            object,
             line: line as u32,
         });
     };
@@ -698,6 +788,64 @@ mod tests {
             .collect();
         assert_eq!(names, ["blue", "lamp", "red", "red"]);
         assert_eq!(s.materials[s.faces[2].material as usize].rho[0], 0.6);
+    }
+
+    #[test]
+    fn faces_keep_their_object_names() {
+        // Faces before any `o` belong to the scene's object; `o` and `g` both name
+        // objects; a name used twice is one object; an object without faces (the empty
+        // `o Camera`, the degenerate face of `o flat`) is dropped.
+        let obj = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\no Camera\no wall, north\n\
+                   f 1 2 3\nf 1 3 4\ng lamp\nf 1 2 4\no flat\nf 1 1 2\no wall, north\nf 2 3 4\n";
+        let s = parse("room", Path::new("room.obj"), obj, &no_mtl).unwrap();
+        assert_eq!(s.objects, ["room", "wall, north", "lamp"]);
+        let names: Vec<&str> = s
+            .faces
+            .iter()
+            .map(|f| s.objects[f.object as usize].as_str())
+            .collect();
+        assert_eq!(
+            names,
+            ["room", "wall, north", "wall, north", "lamp", "wall, north"]
+        );
+        assert_eq!(s.units, None);
+        // Every patch keeps its face's object.
+        let p = crate::mesh::PatchSet::build(&s, crate::mesh::Resolution::Patches(40)).unwrap();
+        assert_eq!(p.objects, s.objects);
+        for i in 0..p.len() {
+            assert_eq!(p.object[i], s.faces[p.face[i] as usize].object);
+        }
+        assert!(p.object.contains(&2));
+    }
+
+    #[test]
+    fn units_line_is_read_and_bad_ones_name_their_line() {
+        let tri = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n";
+        let s = parse(
+            "t",
+            Path::new("t.obj"),
+            &format!("#@units mm\n{tri}"),
+            &no_mtl,
+        )
+        .unwrap();
+        assert_eq!(s.units, Some(Units::Millimetres));
+        assert_eq!(s.units.unwrap().metres(), 1e-3);
+        let same = format!("#@units cm\n{tri}#@units cm\n");
+        let s = parse("t", Path::new("t.obj"), &same, &no_mtl).unwrap();
+        assert_eq!(s.units, Some(Units::Centimetres));
+        for (text, want) in [
+            (format!("{tri}#@units inch\n"), "t.obj:5: #@units `inch`"),
+            (format!("#@units\n{tri}"), "t.obj:1: #@units ``"),
+            (
+                format!("#@units m\n{tri}#@units mm\n"),
+                "t.obj:6: #@units mm contradicts `#@units m` at line 1",
+            ),
+        ] {
+            let e = parse("t", Path::new("t.obj"), &text, &no_mtl)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(want), "{e}");
+        }
     }
 
     #[test]

@@ -101,9 +101,11 @@ fn scene(name: &str, quads: &[(DVec3, DVec3, DVec3)]) -> Scene {
         faces.push(Face {
             corners: [k, k + 1, k + 2, k + 3],
             material: 0,
+            object: faces.len() as u32,
             line: 0,
         });
     }
+    let faces_len = faces.len();
     Scene {
         name: name.to_string(),
         source: format!("study:{name}"),
@@ -115,6 +117,8 @@ fn scene(name: &str, quads: &[(DVec3, DVec3, DVec3)]) -> Scene {
             emit: [1.0; 3],
             thermal: None,
         }],
+        objects: (0..faces_len).map(|k| format!("quad{k}")).collect(),
+        units: None,
         camera: None,
         warnings: Vec::new(),
     }

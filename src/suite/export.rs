@@ -127,14 +127,7 @@ pub fn obj_text(c: &Case) -> (String, String) {
     (obj, mtl)
 }
 
-/// CSV field, quoted when it holds a comma or a quote.
-pub fn csv_field(s: &str) -> String {
-    if s.contains(',') || s.contains('"') || s.contains('\n') {
-        format!("\"{}\"", s.replace('"', "\"\""))
-    } else {
-        s.to_string()
-    }
-}
+pub use crate::output::csv_field;
 
 fn write_text(path: &Path, text: &str) -> Result<()> {
     write_atomic(path, |tmp| {
