@@ -679,6 +679,37 @@ impl FormFactors {
     }
 }
 
+/// For each stored entry of `f`, the position of its mirror `(j, i)` when the two satisfy
+/// reciprocity to rounding in value and standard error (one random variable: the
+/// estimators that compute a pair once and fill the other entry by reciprocity), else
+/// `None`. Diagonal entries map to `None`.
+pub fn reciprocal_pairs(f: &Csr, se: &[f32], area: &[f64]) -> Vec<Option<usize>> {
+    let ptr = f.indptr();
+    let ptr = ptr.to_proper();
+    let (ind, val) = (f.indices(), f.data());
+    let mut out = vec![None; val.len()];
+    for i in 0..f.rows() {
+        for k in ptr[i]..ptr[i + 1] {
+            let j = ind[k] as usize;
+            if j == i {
+                continue;
+            }
+            let row = &ind[ptr[j]..ptr[j + 1]];
+            let Ok(m) = row.binary_search(&(i as u32)) else {
+                continue;
+            };
+            let m = ptr[j] + m;
+            let (g, h) = (area[i] * val[k], area[j] * val[m]);
+            let (sg, sh) = (area[i] * f64::from(se[k]), area[j] * f64::from(se[m]));
+            let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs());
+            if close(g, h) && close(sg, sh) {
+                out[k] = Some(m);
+            }
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

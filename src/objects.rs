@@ -19,12 +19,10 @@
 //!
 //! - between two objects (`I != J`): `se(S_IJ)² = sum (A_i s_ij)²`;
 //! - within one object (`I = J`), the two entries of a pair `(i, j)`, `(j, i)` are both in
-//!   the sum. The estimators that compute the upper triangle and mirror it
-//!   ([`crate::matrix::CsrBuilder::from_upper`]) make `A_i F_ij = A_j F_ji` the same random
-//!   number, so the pair's errors add linearly: `se(S_II)² = sum_{i<j} (A_i s_ij +
-//!   A_j s_ji)² + sum_i (A_i s_ii)²`. This is exact for mirrored entries and, for
-//!   independent ones, larger than the truth by at most a factor `sqrt 2` (an error bar on
-//!   the safe side).
+//!   the sum. Where they are one random variable (they satisfy reciprocity to rounding in
+//!   value and bar, [`crate::matrix::reciprocal_pairs`]: the estimators that compute the
+//!   upper triangle and mirror it, [`crate::matrix::CsrBuilder::from_upper`]) the pair's
+//!   errors add linearly, `(2 A_i s_ij)²`; otherwise as independent variances.
 //!
 //! Then `se(F_IJ) = se(S_IJ) / A_I`. Entries within one row of a hemisphere or hemicube
 //! estimate share their rays and are negatively correlated (a ray hits one patch or
@@ -42,7 +40,7 @@
 use std::fmt::Write as _;
 
 use crate::error::{Error, Result};
-use crate::matrix::FormFactors;
+use crate::matrix::{reciprocal_pairs, Csr, FormFactors};
 use crate::mesh::PatchSet;
 use crate::output::csv_field;
 
@@ -105,36 +103,16 @@ impl ObjectFactors {
                 patches.objects[k], area[k], count[k]
             )));
         }
-        let mut sum = vec![0.0f64; n * n];
-        let mut var = vec![0.0f64; n * n];
-        let (ptr, cols) = (ff.f.indptr(), ff.f.indices());
-        let data = ff.f.data();
-        for i in 0..ff.len() {
-            let oi = patches.object[i] as usize;
-            let a_i = patches.area[i];
-            for k in ptr.index(i)..ptr.index(i + 1) {
-                let j = cols[k] as usize;
-                let oj = patches.object[j] as usize;
-                let cell = oi * n + oj;
-                sum[cell] += a_i * data[k];
-                let e = a_i * f64::from(ff.se[k]);
-                if oi != oj || i == j {
-                    var[cell] += e * e;
-                    continue;
-                }
-                // Within one object: the pair (i, j), (j, i) once, errors added linearly.
-                let back =
-                    ff.f.nnz_index(j, i)
-                        .map(|b| patches.area[j] * f64::from(ff.se[b.0]));
-                match back {
-                    Some(e_back) if i < j => var[cell] += (e + e_back) * (e + e_back),
-                    Some(_) => {} // counted with (j, i)
-                    None => var[cell] += e * e,
-                }
+        let (zf, zse, _) = lump(&ff.f, &ff.se, &patches.area, &patches.object, n)?;
+        let (mut f, mut se) = (vec![0.0f64; n * n], vec![0.0f64; n * n]);
+        let mut k = 0;
+        for (i, row) in zf.outer_iterator().enumerate() {
+            for (j, &v) in row.iter() {
+                f[i * n + j] = v;
+                se[i * n + j] = zse[k];
+                k += 1;
             }
         }
-        let f = (0..n * n).map(|c| sum[c] / area[c / n]).collect();
-        let se = (0..n * n).map(|c| var[c].sqrt() / area[c / n]).collect();
         Ok(ObjectFactors {
             names: patches.objects.clone(),
             patches: count,
@@ -204,6 +182,82 @@ impl ObjectFactors {
         }
         o
     }
+}
+
+/// Factors between groups of patches (objects, or a thermal run's surfaces): `group[i]`
+/// names patch i's group in `0..groups`.
+/// Returns the zone matrix `F_SK = sum_{i in S, j in K} A_i F_ij / A_S` (CSR), its standard
+/// errors and the zone areas. With each surface as one zone of uniform radiosity this is
+/// the zonal model that the closed forms of the textbooks assume (Hottel and Sarofim 1967,
+/// ch. 8; Modest, 3rd ed., sec. 6.3: "each surface isothermal with uniform radiosity").
+/// Reciprocal pairs of patches (module docs) give reciprocal zone factors with coupled
+/// errors: within one zone a pair counts twice, `(2 A_i s_ij)²`; the other terms add as
+/// independent variances `(A_i s_ij)²`.
+pub fn lump(
+    f: &Csr,
+    se: &[f32],
+    area: &[f64],
+    group: &[u32],
+    groups: usize,
+) -> Result<(Csr, Vec<f64>, Vec<f64>)> {
+    let n = area.len();
+    if f.rows() != n || se.len() != f.nnz() || group.len() != n {
+        return Err(Error::Config(format!(
+            "lump: {} rows, {} errors for {} factors, {} labels, {n} patches",
+            f.rows(),
+            se.len(),
+            f.nnz(),
+            group.len()
+        )));
+    }
+    if let Some(i) = group.iter().position(|&g| g as usize >= groups) {
+        return Err(Error::Config(format!(
+            "patch {i}: surface {} of {groups}",
+            group[i]
+        )));
+    }
+    let pairs = reciprocal_pairs(f, se, area);
+    let mut a = vec![0.0; groups];
+    for i in 0..n {
+        a[group[i] as usize] += area[i];
+    }
+    let mut sum = vec![0.0; groups * groups];
+    let mut var = vec![0.0; groups * groups];
+    let ptr = f.indptr();
+    let ptr = ptr.to_proper();
+    let (ind, val) = (f.indices(), f.data());
+    for i in 0..n {
+        let s = group[i] as usize;
+        for e in ptr[i]..ptr[i + 1] {
+            let j = ind[e] as usize;
+            let k = group[j] as usize;
+            sum[s * groups + k] += area[i] * val[e];
+            let v = (area[i] * f64::from(se[e])).powi(2);
+            match pairs[e] {
+                Some(_) if s == k && j < i => {}
+                Some(_) if s == k => var[s * groups + k] += 4.0 * v,
+                _ => var[s * groups + k] += v,
+            }
+        }
+    }
+    let mut t = crate::matrix::Triplets::new((groups, groups));
+    let mut out_se = Vec::new();
+    for s in 0..groups {
+        for k in 0..groups {
+            let v = sum[s * groups + k];
+            if v > 0.0 {
+                t.add_triplet(s, k, v / a[s]);
+            }
+        }
+    }
+    let zf: Csr = t.to_csr();
+    // Standard errors in the CSR order of `zf`.
+    for (s, row) in zf.outer_iterator().enumerate() {
+        for (k, _) in row.iter() {
+            out_se.push(var[s * groups + k].sqrt() / a[s]);
+        }
+    }
+    Ok((zf, out_se, a))
 }
 
 #[cfg(test)]

@@ -988,7 +988,7 @@ pub struct ThermalConfig {
     /// Ambient (environment) temperature, K.
     pub ambient: f64,
     /// Solve with each surface (material) as one zone of uniform radiosity
-    /// ([`crate::thermal::lump`]) instead of patch by patch.
+    /// ([`crate::objects::lump`]) instead of patch by patch.
     pub zones: bool,
     /// Solver and error-bar settings.
     pub settings: crate::thermal::Settings,
@@ -1186,7 +1186,9 @@ pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary
             .map(|&s| infos[s as usize].boundary)
             .collect();
         if cfg.zones {
-            let (zf, zse, za) = th::lump(&ff.f, &ff.se, &ff.area, &surface_of, groups)?;
+            let (zf, zse, za) = crate::objects::lump(&ff.f, &ff.se, &ff.area, &surface_of, groups)?;
+            // Stored as every bar is, in f32.
+            let zse: Vec<f32> = zse.iter().map(|&s| s as f32).collect();
             let zeps: Vec<f64> = infos.iter().map(|s| s.emissivity).collect();
             let zbc: Vec<_> = infos.iter().map(|s| s.boundary).collect();
             let zp = Problem {

@@ -80,7 +80,7 @@
 pub mod bc;
 
 use crate::error::{Error, Result};
-use crate::matrix::Csr;
+use crate::matrix::{reciprocal_pairs, Csr};
 use crate::sampling::Pcg32;
 use crate::scene::Boundary;
 
@@ -174,7 +174,7 @@ pub struct Solution {
 }
 
 impl Solution {
-    /// The solution of a zone problem ([`lump`]) carried to the patches: patch i gets the
+    /// The solution of a zone problem ([`crate::objects::lump`]) carried to the patches: patch i gets the
     /// values of zone `zone[i]`.
     pub fn spread(&self, zone: &[u32]) -> Solution {
         let pick = |v: &[f64]| zone.iter().map(|&z| v[z as usize]).collect::<Vec<f64>>();
@@ -367,36 +367,6 @@ fn gauss_seidel(
                nearly closed regions bounded by flux-given or low-emissivity surfaces)"
             .into(),
     })
-}
-
-/// For each stored entry of `f`, the position of its mirror `(j, i)` when the two satisfy
-/// reciprocity to rounding in value and standard error (one random variable; see the
-/// module docs), else `None`. Diagonal entries map to `None`.
-fn reciprocal_pairs(f: &Csr, se: &[f32], area: &[f64]) -> Vec<Option<usize>> {
-    let ptr = f.indptr();
-    let ptr = ptr.to_proper();
-    let (ind, val) = (f.indices(), f.data());
-    let mut out = vec![None; val.len()];
-    for i in 0..f.rows() {
-        for k in ptr[i]..ptr[i + 1] {
-            let j = ind[k] as usize;
-            if j == i {
-                continue;
-            }
-            let row = &ind[ptr[j]..ptr[j + 1]];
-            let Ok(m) = row.binary_search(&(i as u32)) else {
-                continue;
-            };
-            let m = ptr[j] + m;
-            let (g, h) = (area[i] * val[k], area[j] * val[m]);
-            let (sg, sh) = (area[i] * f64::from(se[k]), area[j] * f64::from(se[m]));
-            let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs());
-            if close(g, h) && close(sg, sh) {
-                out[k] = Some(m);
-            }
-        }
-    }
-    out
 }
 
 /// Scales rows with `r_i sum_j F_ij >= 1` to sum to 1 (module docs).
@@ -754,81 +724,6 @@ pub fn surfaces(
         });
     }
     Ok(out)
-}
-
-/// Factors between surfaces (zones): `group[i]` names patch i's surface in `0..groups`.
-/// Returns the zone matrix `F_SK = sum_{i in S, j in K} A_i F_ij / A_S` (CSR), its standard
-/// errors (`f32`, as every stored bar) and the zone areas. With each surface as one zone of uniform radiosity this is
-/// the zonal model that the closed forms of the textbooks assume (Hottel and Sarofim 1967,
-/// ch. 8; Modest, 3rd ed., sec. 6.3: "each surface isothermal with uniform radiosity").
-/// Reciprocal pairs of patches (module docs) give reciprocal zone factors with coupled
-/// errors: within one zone a pair counts twice, `(2 A_i s_ij)²`; the other terms add as
-/// independent variances `(A_i s_ij)²`.
-pub fn lump(
-    f: &Csr,
-    se: &[f32],
-    area: &[f64],
-    group: &[u32],
-    groups: usize,
-) -> Result<(Csr, Vec<f32>, Vec<f64>)> {
-    let n = area.len();
-    if f.rows() != n || se.len() != f.nnz() || group.len() != n {
-        return Err(Error::Config(format!(
-            "lump: {} rows, {} errors for {} factors, {} labels, {n} patches",
-            f.rows(),
-            se.len(),
-            f.nnz(),
-            group.len()
-        )));
-    }
-    if let Some(i) = group.iter().position(|&g| g as usize >= groups) {
-        return Err(Error::Config(format!(
-            "patch {i}: surface {} of {groups}",
-            group[i]
-        )));
-    }
-    let pairs = reciprocal_pairs(f, se, area);
-    let mut a = vec![0.0; groups];
-    for i in 0..n {
-        a[group[i] as usize] += area[i];
-    }
-    let mut sum = vec![0.0; groups * groups];
-    let mut var = vec![0.0; groups * groups];
-    let ptr = f.indptr();
-    let ptr = ptr.to_proper();
-    let (ind, val) = (f.indices(), f.data());
-    for i in 0..n {
-        let s = group[i] as usize;
-        for e in ptr[i]..ptr[i + 1] {
-            let j = ind[e] as usize;
-            let k = group[j] as usize;
-            sum[s * groups + k] += area[i] * val[e];
-            let v = (area[i] * f64::from(se[e])).powi(2);
-            match pairs[e] {
-                Some(_) if s == k && j < i => {}
-                Some(_) if s == k => var[s * groups + k] += 4.0 * v,
-                _ => var[s * groups + k] += v,
-            }
-        }
-    }
-    let mut t = crate::matrix::Triplets::new((groups, groups));
-    let mut out_se = Vec::new();
-    for s in 0..groups {
-        for k in 0..groups {
-            let v = sum[s * groups + k];
-            if v > 0.0 {
-                t.add_triplet(s, k, v / a[s]);
-            }
-        }
-    }
-    let zf: Csr = t.to_csr();
-    // Standard errors in the CSR order of `zf`.
-    for (s, row) in zf.outer_iterator().enumerate() {
-        for (k, _) in row.iter() {
-            out_se.push((var[s * groups + k].sqrt() / a[s]) as f32);
-        }
-    }
-    Ok((zf, out_se, a))
 }
 
 /// The two-surface enclosure's closed form: net heat flow from surface 1 (area `a1`,
