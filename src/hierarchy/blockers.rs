@@ -126,23 +126,8 @@ impl Blockers {
             return Some(true);
         }
         let mut left = budget;
-        let tol = self.tol;
-        let (la, ha) = bounds(a);
-        let (lb, hb) = bounds(b);
-        let (lo, hi) = (la.min(lb) - tol, ha.max(hb) + tol);
-        let (pa, pb) = (self.planes[ra as usize], self.planes[rb as usize]);
-        let harmless = |k: u32| {
-            if k == ra || k == rb {
-                return true;
-            }
-            let ck = &self.corners[k as usize];
-            if range(pa, ck).1 <= tol || range(pb, ck).1 <= tol {
-                return true;
-            }
-            let pk = self.planes[k as usize];
-            let (ra_, rb_) = (range(pk, a), range(pk, b));
-            (ra_.0 >= -tol && rb_.0 >= -tol) || (ra_.1 <= tol && rb_.1 <= tol)
-        };
+        let (lo, hi) = self.pair_box(a, b);
+        let harmless = |k: u32| self.harmless(k, a, ra, b, rb);
         let misses = |l: DVec3, h: DVec3| l.cmpgt(hi).any() || h.cmplt(lo).any();
         let mut stack = vec![0usize];
         while let Some(i) = stack.pop() {
@@ -175,6 +160,32 @@ impl Blockers {
             }
         }
         Some(true)
+    }
+}
+
+impl Blockers {
+    /// The pair's box, grown by the tolerance.
+    fn pair_box(&self, a: &[DVec3], b: &[DVec3]) -> (DVec3, DVec3) {
+        let (la, ha) = bounds(a);
+        let (lb, hb) = bounds(b);
+        (la.min(lb) - self.tol, ha.max(hb) + self.tol)
+    }
+
+    /// True when candidate `k` blocks no segment between `a` and `b` by its planes (the
+    /// second and third tests of the module docs).
+    fn harmless(&self, k: u32, a: &[DVec3], ra: u32, b: &[DVec3], rb: u32) -> bool {
+        if k == ra || k == rb {
+            return true;
+        }
+        let tol = self.tol;
+        let (pa, pb) = (self.planes[ra as usize], self.planes[rb as usize]);
+        let ck = &self.corners[k as usize];
+        if range(pa, ck).1 <= tol || range(pb, ck).1 <= tol {
+            return true;
+        }
+        let pk = self.planes[k as usize];
+        let (ra_, rb_) = (range(pk, a), range(pk, b));
+        (ra_.0 >= -tol && rb_.0 >= -tol) || (ra_.1 <= tol && rb_.1 <= tol)
     }
 }
 
@@ -248,26 +259,10 @@ mod tests {
 
     /// The proof by a scan of every candidate, as it was before the tree.
     fn by_scan(bl: &Blockers, a: &[DVec3], ra: u32, b: &[DVec3], rb: u32) -> bool {
-        let tol = bl.tol;
-        let (la, ha) = bounds(a);
-        let (lb, hb) = bounds(b);
-        let (lo, hi) = (la.min(lb) - tol, ha.max(hb) + tol);
-        let (pa, pb) = (bl.planes[ra as usize], bl.planes[rb as usize]);
+        let (lo, hi) = bl.pair_box(a, b);
         bl.order.iter().all(|&k| {
-            if k == ra || k == rb {
-                return true;
-            }
             let (lk, hk) = bl.boxes[k as usize];
-            if lk.cmpgt(hi).any() || hk.cmplt(lo).any() {
-                return true;
-            }
-            let ck = &bl.corners[k as usize];
-            if range(pa, ck).1 <= tol || range(pb, ck).1 <= tol {
-                return true;
-            }
-            let pk = bl.planes[k as usize];
-            let (ra_, rb_) = (range(pk, a), range(pk, b));
-            (ra_.0 >= -tol && rb_.0 >= -tol) || (ra_.1 <= tol && rb_.1 <= tol)
+            lk.cmpgt(hi).any() || hk.cmplt(lo).any() || bl.harmless(k, a, ra, b, rb)
         })
     }
 
