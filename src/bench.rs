@@ -28,6 +28,7 @@ use crate::formfactor::{
 };
 use crate::mesh::{PatchSet, Resolution};
 use crate::output;
+use crate::output::chart::{line_chart, Series};
 use crate::pipeline::{self, EstimatorChoice};
 use crate::scene::Scene;
 use crate::solve::{Method, Options};
@@ -508,11 +509,7 @@ pub fn stages(
 ) -> Result<StageReport> {
     let mut st = Stages(Vec::new());
     let scene = st.run("load", || Scene::load(scene))?;
-    let patches = st.run("mesh", || -> Result<PatchSet> {
-        let p = PatchSet::build(&scene, resolution)?;
-        p.validate()?;
-        Ok(p)
-    })?;
+    let patches = st.run("mesh", || PatchSet::build(&scene, resolution))?;
     let vis = st.run("bvh", || Visibility::new(&patches))?;
     let est = choice.build();
     let ctx = Context {
@@ -702,6 +699,70 @@ pub fn stages_json(reports: &[StageReport], machine: &Machine) -> String {
     serde_json::to_string_pretty(&doc).unwrap_or_default() + "\n"
 }
 
+/// The scaling run as a chart (`base.svg`, `base.png`): seconds of the form-factor stage
+/// (rows and assembly) against patches, log-log, a line per scene and estimator.
+pub fn scaling_chart(base: &Path, reports: &[StageReport]) -> Result<Vec<std::path::PathBuf>> {
+    let mut series: Vec<Series> = Vec::new();
+    for r in reports {
+        let name = format!("{} {}", r.scene, r.estimator);
+        let point = (
+            r.patches as f64,
+            (r.seconds("form factors") + r.seconds("assembly")).max(1e-6),
+        );
+        match series.iter_mut().find(|s| s.name == name) {
+            Some(s) => s.points.push(point),
+            None => series.push(Series::new(name, vec![point])),
+        }
+    }
+    line_chart(
+        base,
+        "form factors: time against patches",
+        "patches",
+        "seconds (form factors + assembly)",
+        true,
+        true,
+        &series,
+    )
+}
+
+/// JSON of a `radiosity bench` run: `{"machine", "scene", "ratios": [{"estimator",
+/// "patches", "rays", "stage_rays_per_s", "raw1_rays_per_s", "raw16_rays_per_s",
+/// "no_query_rays_per_s", "stage_over_best", "per_repeat"}], "stages": [as in
+/// [`stages_json`]]}`: the printed tables, for scripts.
+pub fn bench_json(
+    scene: &str,
+    lines: &[RatioLine],
+    reports: &[StageReport],
+    machine: &Machine,
+) -> String {
+    let ratios: Vec<serde_json::Value> = lines
+        .iter()
+        .map(|l| {
+            serde_json::json!({
+                "estimator": l.estimator,
+                "patches": l.patches,
+                "rays": l.rays,
+                "stage_rays_per_s": l.stage,
+                "raw1_rays_per_s": l.raw,
+                "raw16_rays_per_s": l.raw16,
+                "no_query_rays_per_s": l.sampling,
+                "stage_over_best": l.ratio(),
+                "per_repeat": l.ratios,
+            })
+        })
+        .collect();
+    let stages: serde_json::Value = serde_json::from_str(&stages_json(reports, machine))
+        .map(|mut v: serde_json::Value| v["cases"].take())
+        .unwrap_or_default();
+    let doc = serde_json::json!({
+        "machine": machine,
+        "scene": scene,
+        "ratios": ratios,
+        "stages": stages,
+    });
+    serde_json::to_string_pretty(&doc).unwrap_or_default() + "\n"
+}
+
 /// CSV of stage reports: one line per (case, stage).
 pub fn stages_csv(reports: &[StageReport]) -> String {
     let mut o = String::from("scene,patches,estimator,rays,factors,stage,seconds,peak_bytes\n");
@@ -839,6 +900,11 @@ pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
         })?;
         print("time and peak memory per stage (one run each):");
         print(&format_stages(&reports));
+        std::fs::create_dir_all(&cfg.out_dir).map_err(|e| Error::io(&cfg.out_dir, e))?;
+        let json = cfg.out_dir.join("bench.json");
+        let doc = bench_json(&cfg.scene, &lines, &reports, &Machine::here(threads));
+        std::fs::write(&json, doc).map_err(|e| Error::io(&json, e))?;
+        print(&format!("wrote {}", json.display()));
         return Ok(());
     }
     scaling(cfg, &pool, threads, print)
@@ -911,6 +977,9 @@ fn scaling(
     let table = stages_json(&all, &Machine::here(threads));
     std::fs::write(&json, table).map_err(|e| Error::io(&json, e))?;
     print(&format!("wrote {} and {}", csv.display(), json.display()));
+    let charts = scaling_chart(&cfg.out_dir.join("scaling"), &all)?;
+    let names: Vec<String> = charts.iter().map(|p| p.display().to_string()).collect();
+    print(&format!("wrote {}", names.join(" and ")));
 
     // Acceptance case and parallel efficiency: cube 32 x 32 per face, 1,024 rays per patch.
     let scene = Scene::load("cube")?;
@@ -1013,10 +1082,30 @@ mod tests {
             iterations: 3,
             solve_error: None,
         };
-        let v: serde_json::Value = serde_json::from_str(&stages_json(&[r], &m)).unwrap();
+        let v: serde_json::Value =
+            serde_json::from_str(&stages_json(std::slice::from_ref(&r), &m)).unwrap();
         assert_eq!(v["machine"]["threads"], 2);
         assert_eq!(v["cases"][0]["stages"][0]["stage"], "form factors");
         assert_eq!(v["cases"][0]["factors"], 30);
+        // The plain bench's table: ratios and stages, with the machine.
+        let line = RatioLine {
+            estimator: "hemisphere".into(),
+            patches: 6,
+            rays: 10,
+            stage: 9.0,
+            raw: 8.0,
+            raw16: 10.0,
+            sampling: 100.0,
+            ratios: vec![0.8, 0.9, 1.0],
+        };
+        let v: serde_json::Value =
+            serde_json::from_str(&bench_json("cube", std::slice::from_ref(&line), &[r], &m))
+                .unwrap();
+        assert_eq!(v["machine"]["cores"], m.cores);
+        assert_eq!(v["scene"], "cube");
+        assert_eq!(v["ratios"][0]["stage_over_best"], line.ratio());
+        assert_eq!(v["ratios"][0]["per_repeat"][2], 1.0);
+        assert_eq!(v["stages"][0]["bytes_per_factor"], 16.0);
     }
 
     #[test]

@@ -372,6 +372,32 @@ fn check_rows(dir: &Path, ff: &FormFactors, repair: Repair) -> Result<()> {
     })
 }
 
+/// The form factors of a run: read from the folder `stored` when given (refused there
+/// when a row is over 1 beyond chance, see [`read_factors`]), else computed by the
+/// estimator with the seed; then repaired as `repair` says. Returns the factors, the
+/// Embree version used ("not used" when read) and the repair's report.
+fn factors_of(
+    patches: &PatchSet,
+    stored: Option<&Path>,
+    (estimator, seed): (&EstimatorChoice, u64),
+    repair: Repair,
+    timer: &mut Timer,
+) -> Result<(FormFactors, String, RepairReport)> {
+    let (ff, embree) = match stored {
+        Some(dir) => (
+            timer.run("read factors", 0, || read_factors(dir, patches, repair))?,
+            String::from("not used"),
+        ),
+        None => {
+            let (ff, stages, embree) = form_factors(patches, estimator, seed, timer.obs)?;
+            timer.stages.extend(stages);
+            (ff, embree)
+        }
+    };
+    let (ff, report) = timer.run("repair", 0, || repair::apply(ff, repair));
+    Ok((ff, embree, report))
+}
+
 /// Computes the form factors of a patch set (builds the BVH as its own stage).
 pub fn form_factors(
     patches: &PatchSet,
@@ -489,25 +515,14 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         Some(cfg.preview),
         cfg.max_memory,
     )?;
-    let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
-        let p = PatchSet::build(&scene, cfg.resolution)?;
-        p.validate()?;
-        Ok(p)
-    })?;
-    let (ff, embree) = match &cfg.factors {
-        Some(dir) => (
-            timer.run("read factors", 0, || {
-                read_factors(dir, &patches, cfg.repair)
-            })?,
-            String::from("not used"),
-        ),
-        None => {
-            let (ff, stages, embree) = form_factors(&patches, &cfg.estimator, cfg.seed, obs)?;
-            timer.stages.extend(stages);
-            (ff, embree)
-        }
-    };
-    let (ff, repair_report) = timer.run("repair", 0, || repair::apply(ff, cfg.repair));
+    let patches = timer.run("mesh", 0, || PatchSet::build(&scene, cfg.resolution))?;
+    let (ff, embree, repair_report) = factors_of(
+        &patches,
+        cfg.factors.as_deref(),
+        (&cfg.estimator, cfg.seed),
+        cfg.repair,
+        &mut timer,
+    )?;
     let (diagnostics, max_row_sum_stderr) = timer.run("diagnostics", 0, || {
         let worst = (0..ff.len())
             .map(|i| ff.row_sum_stderr(i))
@@ -638,11 +653,7 @@ fn bake_hierarchical(
 ) -> Result<BakeSummary> {
     settings.validate()?;
     let obs = timer.obs;
-    let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
-        let p = PatchSet::build(&scene, cfg.resolution)?;
-        p.validate()?;
-        Ok(p)
-    })?;
+    let patches = timer.run("mesh", 0, || PatchSet::build(&scene, cfg.resolution))?;
     let vis = timer.run("bvh", 0, || Visibility::new(&patches))?;
     let embree = vis.raw().version();
     let total = settings.max_passes as u64;
@@ -752,11 +763,7 @@ pub fn factors_within(
     output::check_folder(out_dir, FolderKind::Factors)?;
     let scene = timer.run("load", 0, || Scene::load(scene))?;
     check_budget(&scene, resolution, Some(estimator), None, None, max_memory)?;
-    let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
-        let p = PatchSet::build(&scene, resolution)?;
-        p.validate()?;
-        Ok(p)
-    })?;
+    let patches = timer.run("mesh", 0, || PatchSet::build(&scene, resolution))?;
     let (ff, stages, _) = form_factors(&patches, estimator, seed, obs)?;
     timer.stages.extend(stages);
     let (ff, repair_report) = timer.run("repair", 0, || repair::apply(ff, repair));
@@ -1116,25 +1123,14 @@ pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary
         None,
         cfg.max_memory,
     )?;
-    let patches = timer.run("mesh", 0, || -> Result<PatchSet> {
-        let p = PatchSet::build(&scene, cfg.resolution)?;
-        p.validate()?;
-        Ok(p)
-    })?;
-    let (ff, _) = match &cfg.factors {
-        Some(dir) => (
-            timer.run("read factors", 0, || {
-                read_factors(dir, &patches, cfg.repair)
-            })?,
-            (),
-        ),
-        None => {
-            let (ff, stages, _) = form_factors(&patches, &cfg.estimator, cfg.seed, obs)?;
-            timer.stages.extend(stages);
-            (ff, ())
-        }
-    };
-    let (ff, repair_report) = timer.run("repair", 0, || repair::apply(ff, cfg.repair));
+    let patches = timer.run("mesh", 0, || PatchSet::build(&scene, cfg.resolution))?;
+    let (ff, _, repair_report) = factors_of(
+        &patches,
+        cfg.factors.as_deref(),
+        (&cfg.estimator, cfg.seed),
+        cfg.repair,
+        &mut timer,
+    )?;
     let diagnostics = timer.run("diagnostics", 0, || ff.diagnostics());
     // Surfaces: the materials the patches use, in material order.
     let used: Vec<usize> = (0..patches.materials.len())

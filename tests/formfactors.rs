@@ -109,11 +109,18 @@ fn closed_cube_rows_sum_to_one_and_reciprocity_holds() {
         "cube: row sums in [{}, {}], reciprocity {:.2e}",
         d.min_row_sum, d.max_row_sum, d.reciprocity
     );
+    // The default (semi-analytic) estimator integrates each factor to 1e-6 relative and,
+    // with nothing to block in the cube, casts no ray: the rows reach 1 to about 1e-8.
     for i in 0..ff.len() {
         let s = ff.row_sum(i);
-        assert!((s - 1.0).abs() <= 1e-3, "row {i} sums to {s}");
+        assert!((s - 1.0).abs() <= 1e-7, "row {i} sums to {s}");
     }
-    assert!(d.reciprocity <= 1e-3, "reciprocity error {}", d.reciprocity);
+    // It computes each pair once and fills its mirror by reciprocity.
+    assert!(
+        d.reciprocity <= 1e-12,
+        "reciprocity error {}",
+        d.reciprocity
+    );
     assert_eq!(d.out_of_range, 0);
 }
 

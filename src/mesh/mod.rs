@@ -136,7 +136,8 @@ impl PatchSet {
         PatchSampler::of_corners(p, n)
     }
 
-    /// Builds the patches of `scene` at the given resolution.
+    /// Builds the patches of `scene` at the given resolution, checked by
+    /// [`PatchSet::validate`].
     pub fn build(scene: &Scene, res: Resolution) -> Result<PatchSet> {
         let (lo, hi) = scene.bounds();
         let diagonal = (hi - lo).length();
@@ -180,6 +181,7 @@ impl PatchSet {
         if set.len() > (u32::MAX / 4) as usize {
             return Err(Error::Config(format!("{} patches are too many", set.len())));
         }
+        set.validate()?;
         Ok(set)
     }
 

@@ -118,7 +118,7 @@ fn inf_norm(t: &[[f64; 3]]) -> [f64; 3] {
 }
 
 impl Solver for Cg {
-    fn name(&self) -> &str {
+    fn name(&self) -> &'static str {
         NAME
     }
 

@@ -160,7 +160,7 @@ fn channel_groups(rho: &[[f64; 3]]) -> Vec<(usize, Vec<usize>)> {
 }
 
 impl Solver for Direct {
-    fn name(&self) -> &str {
+    fn name(&self) -> &'static str {
         NAME
     }
 

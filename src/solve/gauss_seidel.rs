@@ -30,7 +30,7 @@ pub(crate) const NAME: &str = "gauss-seidel";
 pub struct GaussSeidel;
 
 impl Solver for GaussSeidel {
-    fn name(&self) -> &str {
+    fn name(&self) -> &'static str {
         NAME
     }
 

@@ -28,7 +28,7 @@ pub(crate) const NAME: &str = "jacobi";
 pub struct Jacobi;
 
 impl Solver for Jacobi {
-    fn name(&self) -> &str {
+    fn name(&self) -> &'static str {
         NAME
     }
 

@@ -326,7 +326,7 @@ pub struct SolveReport {
 /// A method for solving the radiosity system.
 pub trait Solver {
     /// The method's name, as in reports and errors.
-    fn name(&self) -> &str;
+    fn name(&self) -> &'static str;
 
     /// Solves `sys`, starting from `B = E`; see the [module docs](self) for what is returned
     /// and when it fails.
@@ -361,10 +361,10 @@ impl Method {
 
     /// The method's name: `jacobi`, `gauss-seidel`, `progressive`, `cg` or `direct`.
     pub fn name(self) -> &'static str {
-        self.solver().name_static()
+        self.solver().name()
     }
 
-    fn solver(self) -> &'static dyn NamedSolver {
+    fn solver(self) -> &'static (dyn Solver + Sync) {
         match self {
             Method::Jacobi => &Jacobi,
             Method::GaussSeidel => &GaussSeidel,
@@ -383,41 +383,6 @@ impl Method {
             Method::Progressive => max_iterations.saturating_mul(n.max(1)),
             _ => max_iterations,
         }
-    }
-}
-
-/// A solver whose name is known statically (all of this module's).
-trait NamedSolver: Solver + Sync {
-    fn name_static(&self) -> &'static str;
-}
-
-impl NamedSolver for Jacobi {
-    fn name_static(&self) -> &'static str {
-        jacobi::NAME
-    }
-}
-
-impl NamedSolver for GaussSeidel {
-    fn name_static(&self) -> &'static str {
-        gauss_seidel::NAME
-    }
-}
-
-impl NamedSolver for Progressive {
-    fn name_static(&self) -> &'static str {
-        progressive::NAME
-    }
-}
-
-impl NamedSolver for Cg {
-    fn name_static(&self) -> &'static str {
-        cg::NAME
-    }
-}
-
-impl NamedSolver for Direct {
-    fn name_static(&self) -> &'static str {
-        direct::NAME
     }
 }
 

@@ -130,7 +130,7 @@ fn bound(scale: &Scale, gain: &Gain, umax: [f64; 3]) -> f64 {
 }
 
 impl Solver for Progressive {
-    fn name(&self) -> &str {
+    fn name(&self) -> &'static str {
         NAME
     }
 

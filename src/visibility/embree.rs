@@ -270,20 +270,7 @@ impl EmbreeScene {
     /// True when something lies on the ray between `tnear` and `tfar`.
     #[inline]
     pub fn occluded1(&self, org: Vec3, dir: Vec3, tnear: f32, tfar: f32) -> bool {
-        let mut ray = sys::RTCRay {
-            org_x: org.x,
-            org_y: org.y,
-            org_z: org.z,
-            tnear,
-            dir_x: dir.x,
-            dir_y: dir.y,
-            dir_z: dir.z,
-            time: 0.0,
-            tfar,
-            mask: u32::MAX,
-            id: 0,
-            flags: 0,
-        };
+        let mut ray = rtc_ray(org, dir, tnear, tfar);
         // SAFETY: the scene is committed; `ray` is a valid RTCRay; null arguments are allowed.
         unsafe { sys::rtcOccluded1(self.scene, &mut ray, null_mut()) };
         // Embree sets tfar to -inf on an occluded ray.
@@ -406,20 +393,7 @@ impl EmbreeScene {
     pub fn intersect1(&self, org: Vec3, dir: Vec3, tnear: f32, tfar: f32) -> Option<RawHit> {
         let mut rh = PaddedRayHit {
             rayhit: sys::RTCRayHit {
-                ray: sys::RTCRay {
-                    org_x: org.x,
-                    org_y: org.y,
-                    org_z: org.z,
-                    tnear,
-                    dir_x: dir.x,
-                    dir_y: dir.y,
-                    dir_z: dir.z,
-                    time: 0.0,
-                    tfar,
-                    mask: u32::MAX,
-                    id: 0,
-                    flags: 0,
-                },
+                ray: rtc_ray(org, dir, tnear, tfar),
                 hit: sys::RTCHit::default(),
             },
             _spare: [u32::MAX; 8],
@@ -431,6 +405,25 @@ impl EmbreeScene {
             prim: hit.primID,
             t: rh.rayhit.ray.tfar,
         })
+    }
+}
+
+/// One ray from `org` along `dir` over `[tnear, tfar]`, every mask bit set.
+#[inline]
+fn rtc_ray(org: Vec3, dir: Vec3, tnear: f32, tfar: f32) -> sys::RTCRay {
+    sys::RTCRay {
+        org_x: org.x,
+        org_y: org.y,
+        org_z: org.z,
+        tnear,
+        dir_x: dir.x,
+        dir_y: dir.y,
+        dir_z: dir.z,
+        time: 0.0,
+        tfar,
+        mask: u32::MAX,
+        id: 0,
+        flags: 0,
     }
 }
 
