@@ -684,30 +684,30 @@ impl FormFactors {
 /// estimators that compute a pair once and fill the other entry by reciprocity), else
 /// `None`. Diagonal entries map to `None`.
 pub fn reciprocal_pairs(f: &Csr, se: &[f32], area: &[f64]) -> Vec<Option<usize>> {
+    use rayon::prelude::*;
     let ptr = f.indptr();
     let ptr = ptr.to_proper();
+    (0..f.rows())
+        .into_par_iter()
+        .flat_map_iter(|i| (ptr[i]..ptr[i + 1]).map(move |k| mirror(f, se, area, i, k)))
+        .collect()
+}
+
+/// The position of the mirror `(j, i)` of the stored entry `k` of row `i`, when the two
+/// are one random variable ([`reciprocal_pairs`]), else `None`.
+pub fn mirror(f: &Csr, se: &[f32], area: &[f64], i: usize, k: usize) -> Option<usize> {
+    let ptr = f.indptr();
     let (ind, val) = (f.indices(), f.data());
-    let mut out = vec![None; val.len()];
-    for i in 0..f.rows() {
-        for k in ptr[i]..ptr[i + 1] {
-            let j = ind[k] as usize;
-            if j == i {
-                continue;
-            }
-            let row = &ind[ptr[j]..ptr[j + 1]];
-            let Ok(m) = row.binary_search(&(i as u32)) else {
-                continue;
-            };
-            let m = ptr[j] + m;
-            let (g, h) = (area[i] * val[k], area[j] * val[m]);
-            let (sg, sh) = (area[i] * f64::from(se[k]), area[j] * f64::from(se[m]));
-            let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs());
-            if close(g, h) && close(sg, sh) {
-                out[k] = Some(m);
-            }
-        }
+    let j = ind[k] as usize;
+    if j == i {
+        return None;
     }
-    out
+    let (lo, hi) = (ptr.index(j), ptr.index(j + 1));
+    let m = lo + ind[lo..hi].binary_search(&(i as u32)).ok()?;
+    let (g, h) = (area[i] * val[k], area[j] * val[m]);
+    let (sg, sh) = (area[i] * f64::from(se[k]), area[j] * f64::from(se[m]));
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs());
+    (close(g, h) && close(sg, sh)).then_some(m)
 }
 
 #[cfg(test)]

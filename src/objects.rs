@@ -40,7 +40,7 @@
 use std::fmt::Write as _;
 
 use crate::error::{Error, Result};
-use crate::matrix::{reciprocal_pairs, Csr, FormFactors};
+use crate::matrix::{mirror, Csr, FormFactors};
 use crate::mesh::PatchSet;
 use crate::output::csv_field;
 
@@ -216,7 +216,6 @@ pub fn lump(
             group[i]
         )));
     }
-    let pairs = reciprocal_pairs(f, se, area);
     let mut a = vec![0.0; groups];
     for i in 0..n {
         a[group[i] as usize] += area[i];
@@ -233,10 +232,12 @@ pub fn lump(
             let k = group[j] as usize;
             sum[s * groups + k] += area[i] * val[e];
             let v = (area[i] * f64::from(se[e])).powi(2);
-            match pairs[e] {
-                Some(_) if s == k && j < i => {}
-                Some(_) if s == k => var[s * groups + k] += 4.0 * v,
-                _ => var[s * groups + k] += v,
+            // Only pairs within one group are coupled: their mirrors alone are looked up.
+            let paired = s == k && mirror(f, se, area, i, e).is_some();
+            match paired {
+                true if j < i => {}
+                true => var[s * groups + k] += 4.0 * v,
+                false => var[s * groups + k] += v,
             }
         }
     }

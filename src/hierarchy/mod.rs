@@ -42,6 +42,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use crate::mesh::PatchSet;
+use crate::scene::luminance;
 use crate::visibility::Visibility;
 use blockers::Blockers;
 use element::Elements;
@@ -230,11 +231,6 @@ pub struct Solution {
     pub state: State,
     /// What was done.
     pub report: Report,
-}
-
-/// Rec. 709 luminance of an RGB triple.
-fn luminance(c: [f64; 3]) -> f64 {
-    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
 }
 
 /// Builds, refines and solves the hierarchy over the root patches `patches` (whose

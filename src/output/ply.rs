@@ -22,13 +22,16 @@
 //! property float radiosity_r
 //! property float radiosity_g
 //! property float radiosity_b
+//! property float quality
 //! element face <m>
 //! property list uchar int vertex_indices
 //! end_header
 //! ```
 //!
 //! `red green blue` are display colours made by the same tone mapping as the preview
-//! ([`tone_map`]: exposure, clamp, sRGB); `radiosity_*` are the linear values. Positions
+//! ([`tone_map`]: exposure, clamp, sRGB); `radiosity_*` are the linear values, `quality` their luminance
+//! ([`crate::scene::luminance`]: MeshLab keeps only the 8-bit colours of a PLY, but colours
+//! and filters by `quality`). Positions
 //! are in the scene's units, as loaded (the `units` comment names them when the scene or
 //! `--units` does), with +Y up, the OBJ convention; `mesh.glb` has the same mesh in
 //! metres ([`super::gltf`]).
@@ -61,6 +64,11 @@ pub fn write_ply(
     let colours: Vec<[u8; 3]> = v.rgb.iter().map(|&c| tone_map(c, exposure)).collect();
     let plane = |c: usize| -> Vec<f32> { v.rgb.iter().map(|x| x[c]).collect() };
     let (r, g, b) = (plane(0), plane(1), plane(2));
+    let quality: Vec<f32> = v
+        .rgb
+        .iter()
+        .map(|&c| super::preview::luminance(c))
+        .collect();
     let comment = format!(
         "radiosity {} per-vertex radiosity; red green blue = sRGB at exposure {exposure}",
         env!("CARGO_PKG_VERSION")
@@ -78,6 +86,7 @@ pub fn write_ply(
             ("radiosity_r", &r),
             ("radiosity_g", &g),
             ("radiosity_b", &b),
+            ("quality", &quality),
         ],
     )
 }
@@ -223,10 +232,11 @@ mod tests {
         assert!(lines.contains(&"element face 2"));
         assert!(lines.contains(&"property uchar red"));
         assert!(lines.contains(&"property float radiosity_b"));
+        assert!(lines.contains(&"property float quality"));
         assert!(lines.contains(&"property list uchar int vertex_indices"));
         assert_eq!(lines[3..5], ["comment units mm", "comment up +y"]);
-        // Vertex record: 6 floats, 3 bytes, 3 floats; face record: 1 + 3 x 4 bytes.
-        let vertex_size = 6 * 4 + 3 + 3 * 4;
+        // Vertex record: 6 floats, 3 bytes, 4 floats; face record: 1 + 3 x 4 bytes.
+        let vertex_size = 6 * 4 + 3 + 4 * 4;
         assert_eq!(bytes.len() - at, 4 * vertex_size + 2 * 13);
         let body = &bytes[at..];
         let f32_at = |o: usize| f32::from_le_bytes(body[o..o + 4].try_into().unwrap());
@@ -235,6 +245,13 @@ mod tests {
         assert_eq!(f32_at(v1), 1.0);
         assert_eq!(&body[v1 + 24..v1 + 27], &tone_map([0.5, 0.25, 0.125], 1.0));
         assert_eq!(f32_at(v1 + 27), 0.5);
+        // Its quality: the luminance of (0.5, 0.25, 0.125).
+        let y = 0.2126 * 0.5 + 0.7152 * 0.25 + 0.0722 * 0.125;
+        assert!(
+            (f64::from(f32_at(v1 + 39)) - y).abs() < 1e-7,
+            "{}",
+            f32_at(v1 + 39)
+        );
         assert_eq!(
             &body[2 * vertex_size + 24..2 * vertex_size + 27],
             &[255, 255, 255]

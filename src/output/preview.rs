@@ -118,9 +118,9 @@ pub fn tone_map(rgb: [f32; 3], exposure: f32) -> [u8; 3] {
     rgb.map(|c| to_u8(srgb_oetf(c * exposure)))
 }
 
-/// Rec. 709 luminance of linear RGB (ITU-R BT.709-6, item 3.2).
+/// [`crate::scene::luminance`] of an `f32` colour.
 pub fn luminance(rgb: [f32; 3]) -> f32 {
-    0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]
+    crate::scene::luminance(rgb.map(f64::from)) as f32
 }
 
 fn to_u8(v: f32) -> u8 {

@@ -21,6 +21,12 @@ use crate::error::{Error, Result};
 /// (largest about 3.4e38), and rho may be as close to 1 as 1 - 1e-8.
 pub const MAX_EMIT: f64 = 1e30;
 
+/// Rec. 709 luminance of linear RGB (ITU-R BT.709-6, item 3.2): the one scalar every
+/// report, chart and preview exposure uses for a colour.
+pub fn luminance(c: [f64; 3]) -> f64 {
+    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+}
+
 /// A diffuse material: reflectance and emitted exitance per RGB channel.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Material {

@@ -27,7 +27,7 @@ use crate::mesh::{PatchSet, Resolution};
 use crate::output::chart::{chart, Mark, Series, Spec};
 use crate::output::{interpolate, interpolate_with, write_atomic, Nodal, VertexRadiosity};
 use crate::pipeline::{self, Quiet};
-use crate::scene::Scene;
+use crate::scene::{luminance, Scene};
 use crate::solve::{Method, Options};
 use crate::visibility::Visibility;
 
@@ -48,11 +48,6 @@ pub struct Probe {
     pub se: [f64; 3],
     /// What the probe is for (free text: contact, shadow, control...).
     pub note: String,
-}
-
-/// Rec. 709 luminance.
-pub fn luminance(c: [f64; 3]) -> f64 {
-    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
 }
 
 /// Reads a reference table (see the module docs): comma-separated, a header naming at
