@@ -532,3 +532,61 @@ fn the_factors_command_writes_npz_on_request() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("npz-deflated"));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn scipy_reads_from_npz_the_matrix_mmread_reads_from_text() {
+    // `scripts/check-npz.py` under RADIOSITY_PYTHON (default python3), when it has NumPy
+    // and SciPy; otherwise the test says why it does nothing.
+    let python = std::env::var("RADIOSITY_PYTHON").unwrap_or_else(|_| "python3".into());
+    match Command::new(&python)
+        .args(["-c", "import numpy, scipy.sparse, scipy.io"])
+        .output()
+    {
+        Ok(o) if o.status.success() => {}
+        Ok(o) => {
+            eprintln!(
+                "skipped: {python} has no NumPy and SciPy ({}); set RADIOSITY_PYTHON to a \
+                 Python that has them",
+                String::from_utf8_lossy(&o.stderr)
+                    .lines()
+                    .last()
+                    .unwrap_or("")
+            );
+            return;
+        }
+        Err(e) => {
+            eprintln!("skipped: no {python} to run ({e}); set RADIOSITY_PYTHON");
+            return;
+        }
+    }
+    let dir = temp_dir("scipy");
+    factors_in(&dir.join("mtx"), 120, 4, store::Format::Mtx);
+    factors_in(&dir.join("npz"), 120, 4, store::Format::Npz);
+    factors_in(&dir.join("deflated"), 120, 4, store::Format::NpzDeflated);
+    factors_in(&dir.join("other"), 120, 5, store::Format::Npz);
+    let check = |npz: &str| {
+        Command::new(&python)
+            .arg(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/check-npz.py"))
+            .arg(dir.join(npz))
+            .arg(dir.join("mtx"))
+            .output()
+            .expect("python runs")
+    };
+    for npz in ["npz", "deflated"] {
+        let out = check(npz);
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        eprint!("{stdout}");
+        assert!(
+            out.status.success(),
+            "{npz}: {stdout}{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert_eq!(stdout.matches("bit for bit").count(), 2, "{stdout}");
+    }
+    // Another seed's matrix differs, and the script says so.
+    let out = check("other");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(1), "{stdout}");
+    assert!(stdout.contains("F.npz vs F.mtx: DIFFERENT"), "{stdout}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
