@@ -461,10 +461,7 @@ struct FactorsArgs {
     mesh: MeshArgs,
     #[command(flatten)]
     factors: FactorArgs,
-    /// Layout of the matrix files: `mtx` (F.mtx, stderr.mtx: Matrix Market text), `npz`
-    /// (F.npz, stderr.npz: SciPy's sparse layout, for `scipy.sparse.load_npz`),
-    /// `npz-deflated` (the same, compressed), or `auto`: mtx up to 2^20 stored entries,
-    /// npz above.
+    /// Layout of the matrix files: Matrix Market text or SciPy's sparse npz.
     #[arg(long, value_enum, default_value_t = Format::Auto)]
     format: Format,
 }

@@ -58,20 +58,23 @@ use crate::repair::Repair;
 /// The folder layout version [`fn@write`] produces and [`fn@read`] accepts.
 pub const FORMAT: u32 = 2;
 
-/// Stored entries above which [`Format::Auto`] writes npz: about 2 x 28 MB of text and a
-/// second of formatting, where the npz files take 2 x 12 MB and a fraction of that.
+/// Stored entries above which [`Format::Auto`] writes npz. At 2^20 entries the two text
+/// files take about 55 MB and half a CPU-second to format (31 and 23 bytes an entry, as
+/// measured on the 32 x 32 cube), the two npz files 21 MB (12 and 8 bytes an entry) and a
+/// few hundredths of a second.
 pub const AUTO_NPZ_ENTRIES: usize = 1 << 20;
 
 /// The layout of a folder's matrix files.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
 pub enum Format {
-    /// Matrix Market up to [`AUTO_NPZ_ENTRIES`] stored entries (text any tool reads,
+    /// Matrix Market up to 2^20 stored entries (`AUTO_NPZ_ENTRIES`: text any tool reads,
     /// cheap at that size), npz above (where the text costs more than the factors).
     #[default]
     Auto,
     /// Matrix Market text: `F.mtx`, `stderr.mtx`.
     Mtx,
-    /// SciPy's sparse npz, members stored: `F.npz`, `stderr.npz`.
+    /// SciPy's sparse npz (`scipy.sparse.load_npz`), members stored: `F.npz`,
+    /// `stderr.npz`.
     Npz,
     /// SciPy's sparse npz, members deflated (smaller, slower to write and read).
     NpzDeflated,
