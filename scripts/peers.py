@@ -97,6 +97,16 @@ def read_mtx(path, n):
     return F
 
 
+def read_npz(path, n):
+    """Dense matrix from SciPy's sparse npz layout (CSR arrays, read with numpy alone)."""
+    with np.load(path, allow_pickle=False) as z:
+        indptr, indices, data = z["indptr"], z["indices"], z["data"]
+    F = np.zeros((n, n))
+    rows = np.repeat(np.arange(n), np.diff(indptr))
+    F[rows, indices] = data
+    return F
+
+
 def run_radiosity(case, n, estimator):
     """Runs `radiosity factors`; the time is that of its form-factor stage (as it reports),
     comparable with the peers' timed calls; the whole process time is printed too."""
@@ -111,7 +121,8 @@ def run_radiosity(case, n, estimator):
         dt = float(m.group(1)) if m else process
         rows = np.genfromtxt(os.path.join(d, "patches.csv"), delimiter=",", names=True, dtype=None,
                              encoding=None)
-        F = read_mtx(os.path.join(d, "F.mtx"), len(rows))
+        npz = os.path.join(d, "F.npz")  # the default layout past 2^20 entries
+        F = read_npz(npz, len(rows)) if os.path.exists(npz) else read_mtx(os.path.join(d, "F.mtx"), len(rows))
         normals = np.stack([rows["nx"], rows["ny"], rows["nz"]], axis=1).astype(float)
         return dt, F, normals, rows["area"].astype(float), process
 

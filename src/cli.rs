@@ -16,6 +16,7 @@ use radiosity::pipeline::{self, BakeConfig, EstimatorChoice, Observer};
 use radiosity::repair::Repair;
 use radiosity::scene::builtin;
 use radiosity::solve::{Method, Options};
+use radiosity::store::Format;
 use radiosity::study;
 
 #[derive(Parser, Debug)]
@@ -34,7 +35,7 @@ enum Command {
     /// Compute form factors, solve, and write radiosity.exr, mesh.ply, mesh.glb and
     /// preview.png.
     Bake(BakeArgs),
-    /// Compute form factors only and store them (Matrix Market, CSV, JSON) for reuse.
+    /// Compute form factors only and store them (Matrix Market or SciPy npz, CSV, JSON) for reuse.
     Factors(FactorsArgs),
     /// Radiative heat transfer between gray surfaces: temperatures, net fluxes and heat
     /// flows with error bars (patches.csv, surfaces.csv; per vertex thermal.exr, mesh.ply);
@@ -460,6 +461,9 @@ struct FactorsArgs {
     mesh: MeshArgs,
     #[command(flatten)]
     factors: FactorArgs,
+    /// Layout of the matrix files: Matrix Market text or SciPy's sparse npz.
+    #[arg(long, value_enum, default_value_t = Format::Auto)]
+    format: Format,
 }
 
 #[derive(Args, Debug)]
@@ -906,6 +910,7 @@ pub fn run() -> Result<()> {
                 args.factors.seed,
                 &args.output,
                 args.factors.repair,
+                args.format,
                 args.factors.max_memory,
                 &bars,
             )?;
@@ -939,22 +944,15 @@ pub fn run() -> Result<()> {
                 )?;
             }
             writeln!(o, "{}", pipeline::format_times(&s.stages, s.peak_memory))?;
-            if p.objects_skipped.is_empty() {
-                writeln!(
-                    o,
-                    "wrote {}/{{F.mtx, stderr.mtx, patches.csv, objects.csv, objects_F.csv, \
-                     objects_stderr.csv, provenance.json, manifest.json}}",
-                    args.output.display()
-                )?;
-            } else {
-                writeln!(
-                    o,
-                    "warning: no object tables: {}\nwrote {}/{{F.mtx, stderr.mtx, \
-                     patches.csv, provenance.json, manifest.json}}",
-                    p.objects_skipped,
-                    args.output.display()
-                )?;
+            if !p.objects_skipped.is_empty() {
+                writeln!(o, "warning: no object tables: {}", p.objects_skipped)?;
             }
+            writeln!(
+                o,
+                "wrote {}/{{{}, provenance.json, manifest.json}}",
+                args.output.display(),
+                p.sha256.keys().cloned().collect::<Vec<_>>().join(", ")
+            )?;
             print!("{}", pipeline::wrap(&o, pipeline::WIDTH));
             Ok(())
         }

@@ -22,7 +22,7 @@
 //! The modules form an acyclic graph: a module refers only to modules upstream of it
 //! (`error`, `input`, `budget`, `scene`, `mesh`, `sampling`, `simd`, `visibility`,
 //! `analytic`, `matrix`, `formfactor`, `hierarchy`, `repair`, `solve`, `thermal`, `output`,
-//! `objects`, `store`, `pipeline`, then the consumers `study`, `suite` and `bench`). The test
+//! `objects`, `npz`, `store`, `pipeline`, then the consumers `study`, `suite` and `bench`). The test
 //! `tests::module_graph_is_acyclic` at
 //! the bottom of this file checks it: it reads every file under `src/`, takes each
 //! `crate::MODULE` path in the code before the file's `#[cfg(test)]` (comments and doc
@@ -47,6 +47,7 @@ pub mod hierarchy;
 pub mod input;
 pub mod matrix;
 pub mod mesh;
+pub mod npz;
 pub mod objects;
 pub mod output;
 pub mod pipeline;

@@ -331,14 +331,15 @@ fn blind_warning(empty: usize, n: usize) -> Option<String> {
 /// row is over 1 beyond chance and `repair` does not restore row sums ([`check_rows`]):
 /// every consumer of stored factors (bake, thermal) goes through here.
 fn read_factors(dir: &Path, patches: &PatchSet, repair: Repair) -> Result<FormFactors> {
-    let ff = store::read(dir, patches)?;
-    check_rows(dir, &ff, repair)?;
+    let (ff, matrix) = store::read_located(dir, patches)?;
+    check_rows(&matrix, &ff, repair)?;
     Ok(ff)
 }
 
 /// Refuses stored factors with a row over 1 by more than its bar allows
 /// ([`FormFactors::row_over_one_beyond_chance`]), unless `repair` restores the row sums.
-fn check_rows(dir: &Path, ff: &FormFactors, repair: Repair) -> Result<()> {
+/// `matrix` is the file the matrix was read from.
+fn check_rows(matrix: &Path, ff: &FormFactors, repair: Repair) -> Result<()> {
     if matches!(repair, Repair::Closure | Repair::Both) {
         return Ok(());
     }
@@ -359,7 +360,7 @@ fn check_rows(dir: &Path, ff: &FormFactors, repair: Repair) -> Result<()> {
         String::from("more than rounding, with no error bar")
     };
     Err(Error::Mismatch {
-        path: dir.join("F.mtx"),
+        path: matrix.to_path_buf(),
         msg: format!(
             "row {} of the matrix (patch {}) sums to {:.6} ± {:.1e}, over 1 by {by}: no physical row \
              sums over 1; bake with --repair closure (or both) to restore the row sums, or \
@@ -728,7 +729,7 @@ pub struct FactorsSummary {
 }
 
 /// Computes form factors for a scene and stores them in `out_dir` (see [`store`]), within
-/// the available memory.
+/// the available memory, in the default layout ([`store::Format::Auto`]).
 pub fn factors(
     scene: &str,
     resolution: Resolution,
@@ -739,12 +740,20 @@ pub fn factors(
     obs: &dyn Observer,
 ) -> Result<FactorsSummary> {
     factors_within(
-        scene, resolution, estimator, seed, out_dir, repair, None, obs,
+        scene,
+        resolution,
+        estimator,
+        seed,
+        out_dir,
+        repair,
+        store::Format::Auto,
+        None,
+        obs,
     )
 }
 
-/// [`factors`] with a memory limit in bytes (`None`: the available memory), checked by
-/// [`check_budget`] before any work.
+/// [`factors`] in the layout `format`, with a memory limit in bytes (`None`: the available
+/// memory) checked by [`check_budget`] before any work.
 #[allow(clippy::too_many_arguments)]
 pub fn factors_within(
     scene: &str,
@@ -753,6 +762,7 @@ pub fn factors_within(
     seed: u64,
     out_dir: &std::path::Path,
     repair: Repair,
+    format: store::Format,
     max_memory: Option<u64>,
     obs: &dyn Observer,
 ) -> Result<FactorsSummary> {
@@ -768,7 +778,9 @@ pub fn factors_within(
     timer.stages.extend(stages);
     let (ff, repair_report) = timer.run("repair", 0, || repair::apply(ff, repair));
     let diagnostics = timer.run("diagnostics", 0, || ff.diagnostics());
-    let provenance = timer.run("write", 0, || store::write(out_dir, &patches, &ff, repair))?;
+    let provenance = timer.run("write", 0, || {
+        store::write(out_dir, &patches, &ff, repair, format)
+    })?;
     Ok(FactorsSummary {
         provenance,
         diagnostics,

@@ -1,5 +1,7 @@
 //! Fuzzing on stable, as a test: mutated OBJ/MTL scenes through the loader and the mesher,
-//! mutated Matrix Market files and provenance records through the factors-folder reader.
+//! mutated Matrix Market files and provenance records through the factors-folder reader,
+//! mutated npz archives (their bytes, or one member's bytes archived again) through the
+//! npz reader.
 //! Every run must end in a value or an error, never a panic.
 //!
 //! The corpus is every scene under `scenes/` and `scenes/invalid/`, the seeds under
@@ -10,11 +12,11 @@
 //! panic is caught (`catch_unwind`), and the test fails printing the case number and the
 //! input that caused it.
 //!
-//! The CI-sized run is 20,000 loader cases and 20,000 reader cases; a longer run sets the
-//! counts, e.g. (docs/RELIABILITY.md):
+//! The CI-sized run is 20,000 loader cases, 20,000 reader cases and 5,000 npz cases; a
+//! longer run sets the counts, e.g. (docs/RELIABILITY.md):
 //!
 //! ```text
-//! RADIOSITY_FUZZ_LOADER=1000000 RADIOSITY_FUZZ_READER=100000 \
+//! RADIOSITY_FUZZ_LOADER=1000000 RADIOSITY_FUZZ_READER=100000 RADIOSITY_FUZZ_NPZ=100000 \
 //!     cargo test --test tests fuzz -- --nocapture
 //! ```
 
@@ -22,6 +24,7 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::{Path, PathBuf};
 
 use radiosity::mesh::{PatchSet, Resolution};
+use radiosity::npz::{self, Compression};
 use radiosity::scene::obj;
 use radiosity::store::{self, Values};
 
@@ -364,4 +367,104 @@ fn fuzz_the_factors_folder_reader() {
         },
     );
     eprintln!("reader: {} cases accepted", accepted.get());
+}
+
+/// The members of a zip archive, in order.
+fn unzip(bytes: &[u8]) -> Vec<(String, Vec<u8>)> {
+    use std::io::Read as _;
+    let mut z = zip::ZipArchive::new(std::io::Cursor::new(bytes)).expect("a zip archive");
+    (0..z.len())
+        .map(|k| {
+            let mut f = z.by_index(k).expect("member");
+            let mut v = Vec::new();
+            f.read_to_end(&mut v).expect("member bytes");
+            (f.name().to_string(), v)
+        })
+        .collect()
+}
+
+/// A stored zip archive of `members`.
+fn rezip(members: &[(String, Vec<u8>)]) -> Vec<u8> {
+    use std::io::Write as _;
+    let mut z = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    for (name, bytes) in members {
+        let opts = zip::write::SimpleFileOptions::default()
+            .compression_method(zip::CompressionMethod::Stored);
+        if z.start_file(name.as_str(), opts).is_err() {
+            continue; // a name the mutator made twice
+        }
+        z.write_all(bytes).expect("write member");
+    }
+    z.finish().expect("finish").into_inner()
+}
+
+#[test]
+fn fuzz_the_npz_reader() {
+    let seed = env_count("RADIOSITY_FUZZ_SEED", 1);
+    let cases = env_count("RADIOSITY_FUZZ_NPZ", 5_000);
+    let dir = root().join("tests/fuzz/factors");
+    let f = std::fs::read(dir.join("F.mtx")).expect("corpus F.mtx");
+    let prov = std::fs::read_to_string(dir.join("provenance.json")).expect("provenance");
+    let n = store::parse_provenance(&dir.join("provenance.json"), &prov)
+        .expect("the corpus provenance parses")
+        .patches;
+    let m = store::parse_mtx(
+        Path::new("F.mtx"),
+        &f[..],
+        f.len() as u64,
+        n,
+        Values::FormFactors,
+        None,
+    )
+    .expect("the corpus F.mtx parses");
+    // The corpus matrix as npz, stored and deflated, and SciPy's own files (3 x 3).
+    let tmp = std::env::temp_dir().join(format!("radiosity-fuzz-npz-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).expect("temp");
+    let mut seeds: Vec<(usize, Vec<u8>)> = Vec::new();
+    for c in [Compression::Stored, Compression::Deflated] {
+        let p = tmp.join("F.npz");
+        npz::write(&p, n, &m.indptr, &m.indices, &m.data, c).expect("write npz");
+        seeds.push((n, std::fs::read(&p).expect("read npz")));
+    }
+    let _ = std::fs::remove_dir_all(&tmp);
+    for name in ["scipy-stored.npz", "scipy-deflated.npz"] {
+        seeds.push((
+            3,
+            std::fs::read(root().join("tests/npz").join(name)).expect("SciPy file"),
+        ));
+    }
+    let members: Vec<Vec<(String, Vec<u8>)>> = seeds.iter().map(|(_, b)| unzip(b)).collect();
+    let accepted = std::cell::Cell::new(0u64);
+    fuzz(
+        "npz",
+        cases,
+        |case| {
+            let mut rng = Rng::new(seed, case);
+            // The first byte says which seed (and so which n) the case is.
+            let which = rng.below(seeds.len());
+            let mut input = vec![which as u8];
+            if rng.below(2) == 0 {
+                // The archive's bytes (most changes meet a CRC or a zip header).
+                input.extend(mutate(&mut rng, &seeds[which].1));
+            } else {
+                // One member's bytes, archived again with valid CRCs: the arrays' checks.
+                let mut ms = members[which].clone();
+                let k = rng.below(ms.len());
+                ms[k].1 = mutate(&mut rng, &ms[k].1);
+                if rng.below(8) == 0 {
+                    let other = rng.below(ms.len());
+                    ms.swap(k, other);
+                }
+                input.extend(rezip(&ms));
+            }
+            input
+        },
+        |input| {
+            let (n, body) = (seeds[input[0] as usize].0, &input[1..]);
+            if npz::read::<f64>(Path::new("F.npz"), body, body.len() as u64, n).is_ok() {
+                accepted.set(accepted.get() + 1);
+            }
+        },
+    );
+    eprintln!("npz: {} cases accepted", accepted.get());
 }

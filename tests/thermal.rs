@@ -638,3 +638,34 @@ fn per_vertex_exr_and_ply_agree_with_patches_csv() {
         }
     }
 }
+
+#[test]
+fn npz_factors_give_the_thermal_solution_text_factors_give() {
+    let path = scene("plates.obj");
+    let mut flows = Vec::new();
+    for (format, tag) in [
+        (radiosity::store::Format::Mtx, "fmt-mtx"),
+        (radiosity::store::Format::Npz, "fmt-npz"),
+    ] {
+        let dir = temp_dir(tag);
+        pipeline::factors_within(
+            &path,
+            WHOLE,
+            &exact(),
+            7,
+            &dir,
+            Repair::None,
+            format,
+            None,
+            &Quiet,
+        )
+        .expect("factors");
+        let rows = "plate1,0.8,1000,\nplate2,0.4,500,\nwalls,0.5,,0\n";
+        let s = run(&format!("{tag}-run"), &path, WHOLE, &dir, rows, false);
+        flows.push(["plate1", "plate2", "walls"].map(|name| flow(&s, name)));
+    }
+    assert_eq!(
+        flows[0], flows[1],
+        "the same factors, the same flows to the bit"
+    );
+}

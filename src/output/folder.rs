@@ -1,7 +1,7 @@
 //! Output folders written whole or not at all: [`write_folder`].
 //!
-//! A bake (`radiosity.exr`, `mesh.ply`, `preview.png`...) or a factors folder (`F.mtx`,
-//! `stderr.mtx`, `patches.csv`, `provenance.json`) is only meaningful as a set: files from
+//! A bake (`radiosity.exr`, `mesh.ply`, `preview.png`...) or a factors folder (`F.mtx` and
+//! `stderr.mtx` or their npz pair, `patches.csv`, `provenance.json`) is only meaningful as a set: files from
 //! two runs side by side are a silent wrong answer. So every file of a run is written into a
 //! temporary sibling folder, a `manifest.json` naming the run and every file (size and
 //! SHA-256) is added, and the folder is renamed into place:
@@ -41,8 +41,8 @@ pub const MANIFEST: &str = "manifest.json";
 pub enum FolderKind {
     /// A bake: `radiosity.exr`, `mesh.ply`, previews.
     Bake,
-    /// A factors folder: `F.mtx`, `stderr.mtx`, `patches.csv`, the object tables,
-    /// `provenance.json`.
+    /// A factors folder: `F.mtx` and `stderr.mtx` (or `F.npz` and `stderr.npz`),
+    /// `patches.csv`, the object tables, `provenance.json`.
     Factors,
     /// A thermal solution: `patches.csv`, `surfaces.csv`, `thermal.exr`, `mesh.ply`.
     Thermal,

@@ -10,6 +10,7 @@ use crate::error::{Error, Result};
 use crate::mesh::Resolution;
 use crate::pipeline::{self, EstimatorChoice, Quiet};
 use crate::repair::Repair;
+use crate::store;
 
 /// How the factors are computed.
 #[derive(Clone, Debug)]
@@ -67,6 +68,8 @@ pub fn run(
             s.seed,
             &out.join(&c.case),
             s.repair,
+            // The scorer reads Matrix Market, as it does every program's answers.
+            store::Format::Mtx,
             None,
             &Quiet,
         )?;
