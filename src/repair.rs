@@ -16,8 +16,11 @@
 //!   is `1/(1/v + 1/v')` (an entry with standard error 0 is exact and wins);
 //! - **closure** (closed scenes only): row i's deficit `1 - S_i` is shared in proportion to
 //!   the variances, `δ_ij = σ_ij² (1 - S_i) / Σ_k σ_ik²`; the standard errors become the
-//!   conditional ones, `σ_ij² - σ_ij⁴ / Σ_k σ_ik²`. A row whose entries all have standard
-//!   error 0 (a deterministic estimator) is scaled to sum 1 instead;
+//!   conditional ones, `σ_ij² - σ_ij⁴ / Σ_k σ_ik²`. The bound `F_ij >= 0` is kept: an entry
+//!   the shift would take below 0 is set to 0 and the others share what is left (the
+//!   bound-constrained projection, whose solution `δ_ij = max(-F_ij, λ σ_ij²)` is found by
+//!   pinning the entries that cross, as in an active-set method). A row whose entries all
+//!   have standard error 0 (a deterministic estimator) is scaled to sum 1 instead;
 //! - **both**: the two projections alternate until neither moves an entry by more than
 //!   `1e-12` (alternating projections onto two affine sets in the same metric converge to
 //!   their intersection).
@@ -276,12 +279,41 @@ fn closure(ff: &mut FormFactors, sigma: &[f64], update_se: bool) {
             continue;
         }
         let sum: f64 = ff.f.data()[lo..hi].iter().sum();
-        let var: f64 = sigma[lo..hi].iter().map(|s| s * s).sum();
-        let deficit = 1.0 - sum;
+        // Entries the bound `F >= 0` holds at 0 (a row over 1 takes its excess from the
+        // noisiest entries first, and a small noisy one would go below 0): the others share
+        // the deficit, until none would cross the bound.
+        let mut pinned = vec![false; hi - lo];
+        let (lambda, var) = loop {
+            let (mut kept, mut v_sum) = (0.0, 0.0);
+            for k in lo..hi {
+                if !pinned[k - lo] {
+                    kept += ff.f.data()[k];
+                    v_sum += sigma[k] * sigma[k];
+                }
+            }
+            if v_sum <= 0.0 {
+                break (0.0, 0.0);
+            }
+            let lambda = (1.0 - kept) / v_sum;
+            let mut crossed = false;
+            for k in lo..hi {
+                if !pinned[k - lo] && ff.f.data()[k] + sigma[k] * sigma[k] * lambda < 0.0 {
+                    pinned[k - lo] = true;
+                    crossed = true;
+                }
+            }
+            if !crossed {
+                break (lambda, v_sum);
+            }
+        };
         if var > 0.0 {
             for k in lo..hi {
                 let v = sigma[k] * sigma[k];
-                ff.f.data_mut()[k] += v * deficit / var;
+                if pinned[k - lo] {
+                    ff.f.data_mut()[k] = 0.0;
+                    continue;
+                }
+                ff.f.data_mut()[k] += v * lambda;
                 if update_se {
                     ff.se[k] = (v - v * v / var).max(0.0).sqrt() as f32;
                 }
@@ -331,6 +363,34 @@ mod tests {
         assert_eq!(rep.before.rows_over_one.len(), 1);
         assert!((fixed.row_sum(0) - 1.0).abs() < 1e-12);
         assert!(rep.after.rows_over_one.iter().all(|r| r.sum - 1.0 < 1e-12));
+        assert_eq!(fixed.f.nnz(), ff.f.nnz());
+    }
+
+    /// A row 0.3 over 1 whose noisiest entry is small: the unconstrained shift would take it
+    /// to 0.01 - 0.3 × 0.1² / (0.1² + 2 × 0.01²) < 0. It is held at 0, and the two others
+    /// share the rest of the excess equally (equal bars), so the row sums to 1 with every
+    /// entry in [0, 1].
+    #[test]
+    fn closure_keeps_entries_non_negative() {
+        let ff = matrix(
+            vec![
+                vec![(1, 0.7, 0.01), (2, 0.59, 0.01), (3, 0.01, 0.1)],
+                vec![],
+                vec![],
+                vec![],
+            ],
+            vec![1.0; 4],
+        );
+        let (fixed, _) = repair(&ff, Repair::Closure);
+        assert_eq!(fixed.get(0, 3), 0.0);
+        assert!((fixed.row_sum(0) - 1.0).abs() < 1e-12);
+        // The two others lose (1.29 - 1) / 2 each.
+        assert!(
+            (fixed.get(0, 1) - (0.7 - 0.145)).abs() < 1e-9,
+            "{}",
+            fixed.get(0, 1)
+        );
+        assert!((fixed.get(0, 2) - (0.59 - 0.145)).abs() < 1e-9);
         assert_eq!(fixed.f.nnz(), ff.f.nnz());
     }
 
