@@ -135,6 +135,18 @@ fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64
                 } => Some(SemiAnalytic::new(Nodes::Gauss, points, rays, replicates).with_tol(tol)),
                 _ => None,
             };
+            let area = match *choice {
+                EstimatorChoice::AreaStratified { strata, replicates } => {
+                    Some(AreaMc::new(Pattern::Stratified, strata, replicates))
+                }
+                EstimatorChoice::AreaUniform { strata, replicates } => {
+                    Some(AreaMc::new(Pattern::Uniform, strata, replicates))
+                }
+                EstimatorChoice::AreaSobol { strata, replicates } => {
+                    Some(AreaMc::new(Pattern::Sobol, strata, replicates))
+                }
+                _ => None,
+            };
             Recorded::Segments(
                 (0..n)
                     .into_par_iter()
@@ -144,21 +156,12 @@ fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64
                             rec.segments.borrow_mut().clear();
                             let mut row = Row::default();
                             match *choice {
-                                EstimatorChoice::AreaStratified { strata, replicates }
-                                | EstimatorChoice::AreaUniform { strata, replicates }
-                                | EstimatorChoice::AreaSobol { strata, replicates } => {
-                                    let pattern = match choice {
-                                        EstimatorChoice::AreaUniform { .. } => Pattern::Uniform,
-                                        EstimatorChoice::AreaSobol { .. } => Pattern::Sobol,
-                                        _ => Pattern::Stratified,
-                                    };
-                                    AreaMc {
-                                        pattern,
-                                        strata,
-                                        replicates,
-                                    }
-                                    .row_with(ctx, i, &mut row, rec, scratch)
-                                }
+                                EstimatorChoice::AreaStratified { .. }
+                                | EstimatorChoice::AreaUniform { .. }
+                                | EstimatorChoice::AreaSobol { .. } => area
+                                    .as_ref()
+                                    .expect("built above")
+                                    .row_with(ctx, i, &mut row, rec, scratch),
                                 EstimatorChoice::SemiAnalytic { .. } => semi
                                     .as_ref()
                                     .expect("built above")

@@ -76,21 +76,15 @@ impl EstimatorChoice {
     /// Builds the estimator.
     pub fn build(&self) -> Box<dyn Estimator> {
         match *self {
-            EstimatorChoice::AreaStratified { strata, replicates } => Box::new(AreaMc {
-                pattern: Pattern::Stratified,
-                strata,
-                replicates,
-            }),
-            EstimatorChoice::AreaUniform { strata, replicates } => Box::new(AreaMc {
-                pattern: Pattern::Uniform,
-                strata,
-                replicates,
-            }),
-            EstimatorChoice::AreaSobol { strata, replicates } => Box::new(AreaMc {
-                pattern: Pattern::Sobol,
-                strata,
-                replicates,
-            }),
+            EstimatorChoice::AreaStratified { strata, replicates } => {
+                Box::new(AreaMc::new(Pattern::Stratified, strata, replicates))
+            }
+            EstimatorChoice::AreaUniform { strata, replicates } => {
+                Box::new(AreaMc::new(Pattern::Uniform, strata, replicates))
+            }
+            EstimatorChoice::AreaSobol { strata, replicates } => {
+                Box::new(AreaMc::new(Pattern::Sobol, strata, replicates))
+            }
             EstimatorChoice::Hemicube { res } => Box::new(Hemicube { res }),
             EstimatorChoice::Hemisphere { strata, replicates } => {
                 Box::new(Hemisphere { strata, replicates })

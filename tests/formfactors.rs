@@ -229,11 +229,7 @@ fn results_do_not_depend_on_thread_count() {
             .expect("pool");
         pool.install(|| compute(&ctx, est, &|_| {}))
     };
-    let area = AreaMc {
-        pattern: Pattern::Stratified,
-        strata: 3,
-        replicates: 2,
-    };
+    let area = AreaMc::new(Pattern::Stratified, 3, 2);
     let semi = BakeConfig::default().estimator.build();
     for est in [
         &area as &dyn radiosity::formfactor::Estimator,

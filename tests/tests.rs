@@ -10,6 +10,7 @@ mod invalid;
 mod objects;
 mod polygons;
 mod reliability;
+mod rows;
 mod shelf;
 mod stability;
 mod store;

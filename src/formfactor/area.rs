@@ -33,13 +33,17 @@
 //! error. Culling is decided in f64 on the exact corners.
 //!
 //! Patches that share an edge make `cos cos / r²` unbounded: the estimate stays finite and
-//! unbiased but its variance is infinite, and the replicate error bar is then only
-//! indicative (the heavy tail shows as replicates that disagree).
+//! unbiased but its variance is infinite, and the replicate error bar would say little.
+//! Such *near* pairs (patches closer than a quarter of the larger one's side, [`near`])
+//! are therefore not sampled by point pairs: they get the semi-analytic integral (the exact
+//! point-to-polygon factor at random stratified nodes of the emitter, [`super::semi`]),
+//! whose integrand is bounded, with the same replicates.
 
 use glam::{DVec3, Vec3};
 
-use super::{Context, Entry, Estimator, Row, Scratch as Buffers};
+use super::{Context, Entry, Estimator, Nodes, Row, Scratch as Buffers, SemiAnalytic};
 use std::f64::consts::FRAC_1_PI;
+use std::sync::{Arc, OnceLock};
 
 use crate::mesh::PatchSampler;
 use crate::sampling::{jitter4, Wy};
@@ -66,19 +70,71 @@ pub struct AreaMc {
     pub strata: usize,
     /// Independent replicates (>= 2) for the standard error.
     pub replicates: usize,
+    /// The estimator of near pairs ([`near`]), made on first use from the settings above.
+    near: Arc<OnceLock<SemiAnalytic>>,
 }
 
 impl Default for AreaMc {
     fn default() -> Self {
-        AreaMc {
-            pattern: Pattern::Stratified,
-            strata: 4,
-            replicates: 4,
-        }
+        AreaMc::new(Pattern::Stratified, 4, 4)
     }
 }
 
+/// How close, relative to the side `√A` of the larger patch, two patches must come for
+/// the pair to be *near* ([`near`]).
+pub const NEAR: f64 = 0.25;
+
+/// True when patches `a` and `b` (corners `pa`, `pb`) come closer than [`NEAR`] times
+/// `√A` of the larger one.
+///
+/// A sample pair `(x, y)` adds `A_b cos θ_x cos θ_y / (π r²)` to `F_ab` (and `A_a` times
+/// the same to `F_ba`), at most `A / (π d²)` for patches a distance `d` apart. Where they
+/// touch (`d = 0`: walls meeting at a corner, a box on a floor) the kernel is unbounded and
+/// its variance infinite: the replicates' spread then says little, most runs fall short and
+/// a rare sample near the common edge throws a row far over 1 (5.5 with two strips meeting
+/// in a wedge). Below `d = NEAR √A` a sample may add more than `1 / (π NEAR²) ≈ 5`; such
+/// pairs are handed to the semi-analytic integral with random nodes (the exact inner
+/// integral `F(x → P_b) ≤ 1` is bounded, so its bars are honest standard errors; see
+/// [`AreaMc::row_with`]).
+pub fn near(
+    p: &crate::mesh::PatchSet,
+    (a, pa): (usize, &[DVec3]),
+    (b, pb): (usize, &[DVec3]),
+) -> bool {
+    let reach = NEAR * p.area[a].max(p.area[b]).sqrt();
+    let radius = |c: DVec3, q: &[DVec3]| q.iter().map(|&v| (v - c).length()).fold(0.0, f64::max);
+    let (ca, cb) = (p.centroid[a], p.centroid[b]);
+    if (ca - cb).length() - radius(ca, pa) - radius(cb, pb) >= reach {
+        return false;
+    }
+    super::exact::polygon_distance(pa, pb) < reach
+}
+
 impl AreaMc {
+    /// An estimator with the given pattern, samples per side and replicates.
+    pub fn new(pattern: Pattern, strata: usize, replicates: usize) -> Self {
+        AreaMc {
+            pattern,
+            strata,
+            replicates,
+            near: Arc::default(),
+        }
+    }
+
+    /// The estimator of near pairs: the semi-analytic integral with `strata²` random
+    /// stratified nodes per replicate, `2 × 2` visibility rays per node where something
+    /// may block, and the same replicates.
+    fn near_estimator(&self) -> &SemiAnalytic {
+        self.near.get_or_init(|| {
+            SemiAnalytic::new(
+                Nodes::Stratified,
+                self.strata.max(1),
+                2,
+                self.replicates.max(2),
+            )
+        })
+    }
+
     /// Cells per dimension of the 4D grid of [`Pattern::Stratified`]: `round(sqrt(strata))`,
     /// so that a replicate has `t⁴ ≈ strata²` pairs (exactly, when `strata` is a square).
     pub fn grid(&self) -> usize {
@@ -157,15 +213,15 @@ impl AreaMc {
         let (pa, ka) = p.corner_points(a);
         let on_a = PatchSampler::of_corners(pa, ka);
         let m = self.pairs_per_replicate();
-        let s = &mut scratch.area;
         crate::simd::with_widest(
             #[inline(always)]
-            || self.pairs_of(ctx, a, (&pa[..ka], &on_a), m, row, tracer, s),
+            || self.pairs_of(ctx, a, (&pa[..ka], &on_a), m, row, tracer, scratch),
         )
     }
 
     /// The pairs `(a, b > a)` of row a, given a's corners and sampler: culling, then
-    /// [`AreaMc::pair_in`] for each pair left.
+    /// [`AreaMc::pair_in`] for each pair left, or the semi-analytic integral for a
+    /// [`near`] pair.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn pairs_of(
@@ -176,21 +232,26 @@ impl AreaMc {
         m: usize,
         row: &mut Row,
         tracer: &dyn Tracer,
-        s: &mut Scratch,
+        scratch: &mut Buffers,
     ) {
         let p = ctx.patches;
-        {
-            for b in a + 1..p.len() {
-                // The corners of b serve both culling tests and b's sampler.
-                let (pb, kb) = p.corner_points(b);
-                if behind_plane(ctx, a, &pb[..kb]) || behind_plane(ctx, b, pa) {
-                    continue;
-                }
+        for b in a + 1..p.len() {
+            // The corners of b serve both culling tests and b's sampler.
+            let (pb, kb) = p.corner_points(b);
+            if behind_plane(ctx, a, &pb[..kb]) || behind_plane(ctx, b, pa) {
+                continue;
+            }
+            let got = if near(p, (a, pa), (b, &pb[..kb])) {
+                let semi = &mut scratch.semi;
+                self.near_estimator()
+                    .single_pair(ctx, (a, b), row, tracer, semi)
+            } else {
                 let on_b = PatchSampler::of_corners(pb, kb);
                 let (ons, rays) = ((on_a, &on_b), &mut row.rays);
-                if let Some(e) = self.pair_in(ctx, a, b, ons, m, rays, tracer, s) {
-                    row.entries.push(e);
-                }
+                self.pair_in(ctx, a, b, ons, m, rays, tracer, &mut scratch.area)
+            };
+            if let Some(e) = got {
+                row.entries.push(e);
             }
         }
     }
@@ -210,7 +271,17 @@ impl AreaMc {
         if behind(ctx, a, b) || behind(ctx, b, a) {
             return None;
         }
-        let ons = (&ctx.patches.sampler(a), &ctx.patches.sampler(b));
+        let p = ctx.patches;
+        let ((pa, ka), (pb, kb)) = (p.corner_points(a), p.corner_points(b));
+        if near(p, (a, &pa[..ka]), (b, &pb[..kb])) {
+            let mut row = Row::default();
+            let got =
+                self.near_estimator()
+                    .single_pair(ctx, (a, b), &mut row, tracer, &mut scratch.semi);
+            *rays += row.rays;
+            return got;
+        }
+        let ons = (&p.sampler(a), &p.sampler(b));
         let m = self.pairs_per_replicate();
         self.pair_in(ctx, a, b, ons, m, rays, tracer, &mut scratch.area)
     }

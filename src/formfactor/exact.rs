@@ -279,6 +279,59 @@ fn point_polygon_distance(p: DVec3, poly: &[DVec3]) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
+/// Distance between the segments `p0 p1` and `q0 q1` (Ericson 2005, "Real-Time Collision
+/// Detection", §5.1.9, closest points of two segments).
+fn segment_distance(p0: DVec3, p1: DVec3, q0: DVec3, q1: DVec3) -> f64 {
+    let (d1, d2, r) = (p1 - p0, q1 - q0, p0 - q0);
+    let (a, e, f) = (d1.length_squared(), d2.length_squared(), d2.dot(r));
+    let (s, t) = if a <= f64::MIN_POSITIVE && e <= f64::MIN_POSITIVE {
+        (0.0, 0.0)
+    } else if a <= f64::MIN_POSITIVE {
+        (0.0, (f / e).clamp(0.0, 1.0))
+    } else {
+        let c = d1.dot(r);
+        if e <= f64::MIN_POSITIVE {
+            ((-c / a).clamp(0.0, 1.0), 0.0)
+        } else {
+            let b = d1.dot(d2);
+            let denom = a * e - b * b;
+            let s = if denom > 0.0 {
+                ((b * f - c * e) / denom).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            let t = (b * s + f) / e;
+            if t < 0.0 {
+                ((-c / a).clamp(0.0, 1.0), 0.0)
+            } else if t > 1.0 {
+                (((b - c) / a).clamp(0.0, 1.0), 1.0)
+            } else {
+                (s, t)
+            }
+        }
+    };
+    ((p0 + d1 * s) - (q0 + d2 * t)).length()
+}
+
+/// Distance between two convex polygons that do not cross each other: the least of the
+/// distances from each one's corners to the other and between their edges (for polygons
+/// that do not intersect, the closest points lie on a corner or on two edges). Polygons
+/// that pierce each other get the distance of their edges, an upper bound.
+pub fn polygon_distance(a: &[DVec3], b: &[DVec3]) -> f64 {
+    let corners = a
+        .iter()
+        .map(|&p| point_polygon_distance(p, b))
+        .chain(b.iter().map(|&q| point_polygon_distance(q, a)));
+    let edges = (0..a.len()).flat_map(|i| {
+        (0..b.len()).map(move |j| {
+            let (p0, p1) = (a[i], a[(i + 1) % a.len()]);
+            let (q0, q1) = (b[j], b[(j + 1) % b.len()]);
+            segment_distance(p0, p1, q0, q1)
+        })
+    });
+    corners.chain(edges).fold(f64::INFINITY, f64::min)
+}
+
 /// `F(x → P_r)` with a one-sided receiver: 0 when `x` is not in front of its plane.
 /// `n_x` is a unit normal.
 #[inline]
@@ -560,6 +613,25 @@ mod tests {
         assert!((d(DVec3::new(0.5, 0.5, 2.0)) - 2.0).abs() < 1e-15);
         assert!((d(DVec3::new(2.0, 0.5, 0.0)) - 1.0).abs() < 1e-15);
         assert!((d(DVec3::new(2.0, 2.0, 0.0)) - 2f64.sqrt()).abs() < 1e-15);
+    }
+
+    #[test]
+    fn distance_between_polygons() {
+        let a = square(DVec3::ZERO, DVec3::X, DVec3::Y);
+        // Parallel, 0.3 above: corner to face.
+        let b = square(DVec3::new(0.2, 0.2, 0.3), DVec3::X, DVec3::Y);
+        assert!((polygon_distance(&a, &b) - 0.3).abs() < 1e-15);
+        // Sharing an edge at 90°.
+        let c = square(DVec3::X, DVec3::Z, DVec3::Y);
+        assert_eq!(polygon_distance(&a, &c), 0.0);
+        // Skew edges: a's edge along x at y = 0, and a segment along y at x = 0.5, z = 2,
+        // from y = -3 to 3 (only through its edge, no corner comes as close).
+        let d = [
+            DVec3::new(0.5, -3.0, 2.0),
+            DVec3::new(0.5, 3.0, 2.0),
+            DVec3::new(0.5, 3.0, 5.0),
+        ];
+        assert!((polygon_distance(&a, &d) - 2.0).abs() < 1e-15);
     }
 
     /// Two plates sharing an edge at 135° (a singular configuration for Gauss–Legendre),

@@ -47,7 +47,9 @@
 //! about the same noise where the pair is mostly visible but an `O(1/n)` bias where it is
 //! partly hidden, which the replicates do not see: with one ray per node its 2-bar coverage
 //! is 0% on the occluded study pair.) A node's estimate may be negative where the pair is
-//! almost wholly hidden; only the pair's total is clamped (a total `<= 0` is not stored). The
+//! almost wholly hidden; only the pair's total is clamped (a total `<= 0` is not stored), and
+//! a pair whose every ray was blocked is hidden (factor 0, as the rays say, rather than the
+//! noise of the control variate: no light through a closed wall). The
 //! standard error is the standard deviation of the replicate means over `sqrt(R)`. Each
 //! stream is keyed on `(seed, i, j, replicate)`, so the result does not depend on the thread
 //! count.
@@ -330,43 +332,99 @@ impl SemiAnalytic {
     ) {
         let p = ctx.patches;
         let prep = self.prepared(p);
-        let tol = p.plane_tol();
-        // Possible blockers of anything leaving i: not hull faces, a corner in front of i.
-        let others: Vec<u32> = prep
-            .blockers
-            .iter()
-            .copied()
-            .filter(|&k| k as usize != i && plane_range(p, i, k as usize).1 > tol)
-            .collect();
+        let others = Self::blockers_of(p, i, &prep);
         let scratch = &mut buffers.semi;
         // Patch i's Gauss nodes, mapped once for all the receivers it emits towards.
         let mut own: Option<Emitter> = None;
-        let area_i = p.area[i];
         for j in i + 1..p.len() {
-            if plane_range(p, i, j).1 <= tol || plane_range(p, j, i).1 <= tol {
-                continue;
-            }
-            let free = self.unoccluded(p, i, j, &others, &prep.boxes);
-            // The integral A_i F_ij = A_j F_ji, over the smaller patch.
-            let (e, r) = if p.area[j] < p.area[i] {
-                (j, i)
-            } else {
-                (i, j)
-            };
-            let (value, err) = if free && self.nodes == Nodes::Gauss {
-                let got = self.exact_pair(p, e, r, if e == i { Some(&mut own) } else { None });
-                (got.value, got.err)
-            } else {
-                self.sampled_pair(ctx, (i, j), (e, r), free, row, tracer, scratch)
-            };
-            if value > 0.0 {
-                row.entries.push(Entry {
-                    j: j as u32,
-                    f: value / area_i,
-                    se: err / area_i,
-                });
+            if let Some(e) = self.pair_entry(
+                ctx,
+                (i, j),
+                (&others, &prep),
+                &mut own,
+                row,
+                tracer,
+                scratch,
+            ) {
+                row.entries.push(e);
             }
         }
+    }
+
+    /// The entry `F_ij` of the unordered pair `(i, j)`, `i < j` (`F_ji` follows by
+    /// reciprocity), or `None` when the pair is culled or sees nothing; `row.rays` counts
+    /// the rays. `others` are the possible blockers with a corner strictly in front of i
+    /// ([`SemiAnalytic::blockers_of`]); `own` caches patch i's Gauss nodes.
+    #[allow(clippy::too_many_arguments)]
+    fn pair_entry(
+        &self,
+        ctx: &Context,
+        (i, j): (usize, usize),
+        (others, prep): (&[u32], &Prepared),
+        own: &mut Option<Emitter>,
+        row: &mut Row,
+        tracer: &dyn Tracer,
+        scratch: &mut Scratch,
+    ) -> Option<Entry> {
+        let p = ctx.patches;
+        let tol = p.plane_tol();
+        if plane_range(p, i, j).1 <= tol || plane_range(p, j, i).1 <= tol {
+            return None;
+        }
+        let free = self.unoccluded(p, i, j, others, &prep.boxes);
+        // The integral A_i F_ij = A_j F_ji, over the smaller patch.
+        let (e, r) = if p.area[j] < p.area[i] {
+            (j, i)
+        } else {
+            (i, j)
+        };
+        let (value, err) = if free && self.nodes == Nodes::Gauss {
+            let got = self.exact_pair(p, e, r, if e == i { Some(own) } else { None });
+            (got.value, got.err)
+        } else {
+            self.sampled_pair(ctx, (i, j), (e, r), free, row, tracer, scratch)
+        };
+        let area_i = p.area[i];
+        (value > 0.0).then(|| Entry {
+            j: j as u32,
+            f: value / area_i,
+            se: err / area_i,
+        })
+    }
+
+    /// The possible blockers of anything leaving patch `i`: patches that are not hull
+    /// faces with a corner strictly in front of i.
+    fn blockers_of(p: &PatchSet, i: usize, prep: &Prepared) -> Vec<u32> {
+        let tol = p.plane_tol();
+        prep.blockers
+            .iter()
+            .copied()
+            .filter(|&k| k as usize != i && plane_range(p, i, k as usize).1 > tol)
+            .collect()
+    }
+
+    /// The entry `F_ab` of one unordered pair `(a, b)`, `a < b`, computed on its own (for
+    /// estimators that hand this estimator the pairs they cannot sample well, such as
+    /// patches that touch: [`super::area`]); as [`SemiAnalytic::pair_entry`].
+    pub(crate) fn single_pair(
+        &self,
+        ctx: &Context,
+        (a, b): (usize, usize),
+        row: &mut Row,
+        tracer: &dyn Tracer,
+        scratch: &mut Scratch,
+    ) -> Option<Entry> {
+        let prep = self.prepared(ctx.patches);
+        let others = Self::blockers_of(ctx.patches, a, &prep);
+        self.pair_entry(
+            ctx,
+            (a, b),
+            (&others, &prep),
+            &mut None,
+            row,
+            tracer,
+            scratch,
+        )
     }
 
     /// `∫_{A_e} F(x → P_r) dA_x` for an unoccluded pair, to the tolerance. `cache`, when
@@ -444,6 +502,7 @@ impl SemiAnalytic {
         let w = p.area[e] / (m * m) as f64;
         let area_r = p.area[r];
         s.means.clear();
+        let mut any_free = false;
         for rep in 0..reps {
             let mut rng = Pcg32::keyed(ctx.seed, i as u64, j as u64, rep as u64);
             jittered(&mut rng, m, &mut s.strata);
@@ -486,21 +545,27 @@ impl SemiAnalytic {
                         tfar: SEGMENT_TFAR,
                     };
                     tracer.segments_visible(&segs, &mut s.seen);
+                    any_free |= s.seen.iter().any(|&v| v);
                     // What the blocked rays hide, `∫ G (1 - V) dA_y`, estimated from
                     // uniform points (density 1/A_r); every drawn point counts, those
                     // with G = 0 as 0.
-                    let hidden: f64 = s
-                        .gs
-                        .iter()
-                        .zip(&s.seen)
-                        .filter(|&(_, &seen)| !seen)
-                        .map(|(&g, _)| g)
-                        .sum();
+                    let hidden: f64 =
+                        s.gs.iter()
+                            .zip(&s.seen)
+                            .filter(|&(_, &seen)| !seen)
+                            .map(|(&g, _)| g)
+                            .sum();
                     f - area_r * hidden / s.ys.len() as f64
                 };
                 sum += w * seen;
             }
             s.means.push(sum);
+        }
+        if !free && !any_free {
+            // Every ray blocked: the pair is taken as hidden, as the blocked rays say (the
+            // control variate would leave the noise of its own estimate of the unoccluded
+            // factor: light through a closed wall, or a negative factor).
+            return (0.0, 0.0);
         }
         let avg = s.means.iter().sum::<f64>() / reps as f64;
         let var = s.means.iter().map(|v| (v - avg).powi(2)).sum::<f64>() / (reps - 1) as f64;
@@ -606,11 +671,7 @@ mod tests {
             seed: 7,
         };
         let semi = SemiAnalytic::new(Nodes::Stratified, 6, 4, 8);
-        let mc = AreaMc {
-            pattern: Pattern::Stratified,
-            strata: 24,
-            replicates: 8,
-        };
+        let mc = AreaMc::new(Pattern::Stratified, 24, 8);
         let (a, b) = (compute(&ctx, &semi, &|_| {}), compute(&ctx, &mc, &|_| {}));
         let n = patches.len();
         let (mut checked, mut worst) = (0, 0.0f64);

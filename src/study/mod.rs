@@ -52,15 +52,7 @@ pub fn estimator(kind: Kind, budget: usize) -> Box<dyn Estimator> {
     // Points per side per replicate: strata² × R ≈ budget.
     let s = ((budget as f64 / r as f64).sqrt().round() as usize).max(1);
     match kind {
-        Kind::Uniform | Kind::Stratified | Kind::Sobol => Box::new(AreaMc {
-            pattern: match kind {
-                Kind::Uniform => Pattern::Uniform,
-                Kind::Stratified => Pattern::Stratified,
-                _ => Pattern::Sobol,
-            },
-            strata: s,
-            replicates: r,
-        }),
+        Kind::Uniform | Kind::Stratified | Kind::Sobol => Box::new(area_estimator(kind, s)),
         Kind::Hemisphere => Box::new(Hemisphere {
             strata: s,
             replicates: r,
@@ -79,6 +71,17 @@ pub fn estimator(kind: Kind, budget: usize) -> Box<dyn Estimator> {
             res: ((budget as f64 / 3.0).sqrt().round() as usize).max(2),
         }),
     }
+}
+
+/// The area-to-area estimator of `kind` (uniform, stratified or Sobol) with `strata`
+/// samples per side and the study's replicates.
+fn area_estimator(kind: Kind, strata: usize) -> AreaMc {
+    let pattern = match kind {
+        Kind::Uniform => Pattern::Uniform,
+        Kind::Stratified => Pattern::Stratified,
+        _ => Pattern::Sobol,
+    };
+    AreaMc::new(pattern, strata, REPLICATES)
 }
 
 /// One run of one estimator on one configuration.
@@ -157,15 +160,8 @@ pub fn run_one(p: &Prepared, kind: Kind, budget: usize, seed: u64) -> Run {
     let entry = match kind {
         Kind::Uniform | Kind::Stratified | Kind::Sobol => {
             // Only the studied pair, so that rays and time are those of one pair.
-            let area = AreaMc {
-                pattern: match kind {
-                    Kind::Uniform => Pattern::Uniform,
-                    Kind::Stratified => Pattern::Stratified,
-                    _ => Pattern::Sobol,
-                },
-                strata: ((budget as f64 / REPLICATES as f64).sqrt().round() as usize).max(1),
-                replicates: REPLICATES,
-            };
+            let strata = ((budget as f64 / REPLICATES as f64).sqrt().round() as usize).max(1);
+            let area = area_estimator(kind, strata);
             let (a, b) = (i.min(j), i.max(j));
             let mut s = Scratch::default();
             area.pair_with(&ctx, a, b, &mut row.rays, &p.vis, &mut s)
