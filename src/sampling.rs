@@ -19,6 +19,23 @@ pub fn mix64(mut z: u64) -> u64 {
     z ^ (z >> 31)
 }
 
+/// The standard error of a fraction `p` of `n` trials (a visible fraction from `n` rays, a
+/// share of hits), never 0.
+///
+/// The binomial `sqrt(p (1 - p) / n)` is 0 when every trial came out the same, though `n`
+/// free rays only say that the hidden fraction is below about `3 / n` (the rule of three,
+/// at 95%): a blocker hiding a few percent of a source is missed by 16 rays most of the
+/// time. The fraction is therefore shrunk towards 1/2 by half a trial either way,
+/// `q = (p n + 1/2) / (n + 1)` (the posterior mean under Jeffreys' prior; Brown, Cai and
+/// DasGupta, "Interval estimation for a binomial proportion", Statistical Science 2001),
+/// and the bar is `sqrt(q (1 - q) / n)`: about `1 / (n √2)` for a fraction of 0 or 1, close
+/// to the binomial bar where both outcomes were seen.
+pub fn fraction_se(p: f64, n: f64) -> f64 {
+    let n = n.max(1.0);
+    let q = (p.clamp(0.0, 1.0) * n + 0.5) / (n + 1.0);
+    (q * (1.0 - q) / n).sqrt()
+}
+
 /// PCG32 random number generator.
 #[derive(Clone, Debug)]
 pub struct Pcg32 {

@@ -29,7 +29,7 @@
 use glam::Vec3;
 
 use super::{Context, Entry, Estimator, Row, Scratch as Buffers};
-use crate::sampling::{below, hashed_permutation, jitter4, SplitMix};
+use crate::sampling::{below, fraction_se, hashed_permutation, jitter4, SplitMix};
 use crate::visibility::{Rays, Tracer, NO_HIT};
 
 /// Rays made, traced and counted together: a chunk's sampling buffers (about 24 KB) stay
@@ -368,10 +368,19 @@ impl Hemisphere {
                 let v = std::mem::take(c) as i64;
                 (sum, sq) = (sum + v, sq + v * v);
             }
+            let f = sum as f64 * inv_mr;
+            let spread = reps as i64 * sq - sum * sum;
             Entry {
                 j: j as u32,
-                f: sum as f64 * inv_mr,
-                se: ((reps as i64 * sq - sum * sum) as f64 * inv_se2).sqrt(),
+                f,
+                // Replicates that all counted the same hits (one each, say) have no
+                // spread, but a handful of hits does not make the factor exact: the bar
+                // of the fraction of hits then ([`fraction_se`]).
+                se: if spread > 0 {
+                    (spread as f64 * inv_se2).sqrt()
+                } else {
+                    fraction_se(f, m as f64 * rf)
+                },
             }
         }));
         s.counts[n * reps..(n + 1) * reps].fill(0);

@@ -39,7 +39,7 @@ use super::blockers::{range, Blockers};
 use super::element::Elements;
 use crate::formfactor::exact::{self, Emitter, Receiver};
 use crate::mesh::PatchSet;
-use crate::sampling::Pcg32;
+use crate::sampling::{fraction_se, Pcg32};
 use crate::visibility::{SegmentRay, Visibility};
 
 /// A link as stored, in the list of its receiver.
@@ -49,9 +49,12 @@ pub struct Link {
     pub src: u32,
     /// Form factor `F_rs` (receiver to source).
     pub f: f64,
-    /// Its estimated error: quadrature error plus, for partial links, the binomial
-    /// standard error of the visible fraction times the unoccluded factor.
+    /// The quadrature's error estimate of `f` (deterministic: added linearly).
     pub err: f64,
+    /// The standard error of `f` from its visibility rays: [`fraction_se`] times the
+    /// unoccluded factor (random, independent between links: added in quadrature); 0 when
+    /// the pair was proved unoccluded.
+    pub se: f64,
     /// Variation of the point factor over the receiver (the oracle's `ΔF`).
     pub df: f64,
     /// True when some but not all visibility rays were blocked.
@@ -211,6 +214,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
             src: s,
             f: f_open,
             err: q_err,
+            se: 0.0,
             df: (fmax - fmin) + q_err,
             partial: false,
             vis: 1.0,
@@ -218,7 +222,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
         };
         return (Some(link), cost);
     }
-    let seen = visible_fraction(ctx, r, s);
+    let seen = visible_fraction(ctx, r, s, Some(f_open));
     cost.rays += seen.rays;
     let n = seen.rays.max(1) as f64;
     let link = if seen.v <= 0.0 {
@@ -228,7 +232,8 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
         Link {
             src: s,
             f: 0.0,
-            err: q_err + f_open / (n + 1.0),
+            err: q_err,
+            se: f_open * fraction_se(0.0, n),
             df: fmax + q_err,
             partial: true,
             vis: 0.0,
@@ -239,7 +244,8 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
         Link {
             src: s,
             f: f_open * seen.v,
-            err: q_err + f_open * (seen.v * (1.0 - seen.v) / n).sqrt(),
+            err: q_err,
+            se: f_open * fraction_se(seen.v, n),
             df: if partial { fmax } else { fmax - fmin } + q_err,
             partial,
             vis: seen.v,
@@ -251,14 +257,15 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
 
 /// The unoccluded factor `F(l → P_s)` from element `l` to the polygon of element `s`,
 /// `1/A_l ∫_l F(x → P_s) dA_x`, to the relative tolerance [`Context::quadrature`] or the
-/// absolute tolerance `f_tol`, and the point-factor evaluations spent.
-pub fn open_factor(ctx: &Context, l: u32, s: u32, f_tol: f64) -> (f64, u64) {
+/// absolute tolerance `f_tol`: the factor, the quadrature's error estimate of it, and the
+/// point-factor evaluations spent.
+pub fn open_factor(ctx: &Context, l: u32, s: u32, f_tol: f64) -> exact::Integral {
     let e = ctx.elements;
     let (li, si) = (l as usize, s as usize);
     if range((e.normal[li], e.centre[li]), e.corners(s)).1 <= ctx.tol
         || range((e.normal[si], e.centre[si]), e.corners(l)).1 <= ctx.tol
     {
-        return (0.0, 0);
+        return exact::Integral::default();
     }
     let receiver = Receiver {
         poly: e.corners(s),
@@ -273,7 +280,11 @@ pub fn open_factor(ctx: &Context, l: u32, s: u32, f_tol: f64) -> (f64, u64) {
         ctx.quadrature,
         f_tol.max(1e-15) * area,
     );
-    ((i.value / area).max(0.0), i.evals)
+    exact::Integral {
+        value: (i.value / area).max(0.0),
+        err: i.err / area,
+        evals: i.evals,
+    }
 }
 
 /// What the visibility rays of a pair found.
@@ -295,13 +306,23 @@ const BURIED_TRIES: usize = 4;
 /// skipped): the fraction is that of the surface that can receive, matching the link's
 /// factor per visible area ([`super::solve`]). Source points cover all of `s`, buried
 /// parts included, whose rays are blocked: what `r` sees of the source's radiating part.
-pub fn visible_fraction(ctx: &Context, r: u32, s: u32) -> Seen {
-    visible_fraction_n(ctx, r, s, ctx.rays)
+///
+/// `open` is the unoccluded factor `F(r → P_s)` when the caller has it. For a leaf `r`
+/// (every receiver point counts, none is drawn again) the fraction is then estimated
+/// without bias by subtracting what the blocked rays hide from the exact unoccluded
+/// integral, `v = 1 - Σ_k w_k (1 - V_k) / (n² π A_r F(r → P_s))` with `w_k = cos θ_x cos θ_y
+/// / r² × J_x J_y` the kernel of the k-th segment times the area Jacobians of its ends
+/// (whose mean over the unit squares is `∫∫ cos cos / r² = π A_r F`): the control variate of
+/// the flat semi-analytic estimator ([`crate::formfactor::semi`]). The kernel-weighted
+/// ratio `Σ w V / Σ w`, used otherwise, is biased by `O(1/n²)` where a pair is partly
+/// hidden.
+pub fn visible_fraction(ctx: &Context, r: u32, s: u32, open: Option<f64>) -> Seen {
+    visible_fraction_n(ctx, r, s, ctx.rays, open)
 }
 
 /// [`visible_fraction`] with `n × n` rays instead of [`Context::rays`]² (a different
 /// stream for each `n`).
-pub fn visible_fraction_n(ctx: &Context, r: u32, s: u32, n: usize) -> Seen {
+pub fn visible_fraction_n(ctx: &Context, r: u32, s: u32, n: usize, open: Option<f64>) -> Seen {
     let e = ctx.elements;
     let (nr, ns) = (e.normal[r as usize], e.normal[s as usize]);
     let n = n.max(1);
@@ -360,9 +381,27 @@ pub fn visible_fraction_n(ctx: &Context, r: u32, s: u32, n: usize) -> Seen {
             any_blocked = true;
         }
     }
-    let v = if den > 0.0 { num / den } else { 0.0 };
+    let mean = match open {
+        // The kernel's exact mean, for the control variate.
+        Some(f) if whole && f > 0.0 => std::f64::consts::PI * e.area[r as usize] * f,
+        _ => 0.0,
+    };
+    let v = if !free.iter().any(|&f| f) {
+        // Every ray blocked: hidden, as the rays say (not the control variate's noise).
+        0.0
+    } else if mean > 0.0 {
+        1.0 - (den - num) / (cells as f64 * mean)
+    } else if den > 0.0 {
+        num / den
+    } else {
+        0.0
+    };
     // All free: exactly visible (the ratio is 1 up to rounding).
-    let v = if any_blocked { v.min(1.0 - 1e-12) } else { 1.0 };
+    let v = if any_blocked {
+        v.clamp(0.0, 1.0 - 1e-12)
+    } else {
+        1.0
+    };
     Seen {
         v,
         rays: segs.len() as u64,

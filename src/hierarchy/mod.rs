@@ -42,6 +42,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use crate::mesh::PatchSet;
+use crate::sampling::fraction_se;
 use crate::scene::luminance;
 use crate::visibility::Visibility;
 use blockers::Blockers;
@@ -192,7 +193,7 @@ pub struct Report {
     /// Largest factor sum of a visible leaf (its gather list), and that sum's error bar.
     pub max_row_sum: (f64, f64),
     /// Visible leaves whose factor sum exceeds 1 by more than 3 of its error bars (the
-    /// bars add linearly: quadrature bounds and the links' visibility errors).
+    /// quadrature bounds add linearly, the visibility standard errors in quadrature).
     pub rows_over_one: usize,
     /// Rays cast in all.
     pub rays: u64,
@@ -519,7 +520,7 @@ const PIECE_RAYS: usize = 2;
 /// Where a gather entry's visible fraction comes from.
 #[derive(Clone, Copy)]
 enum Sight {
-    /// The link's (fraction, relative bar).
+    /// The link's (fraction, relative standard error).
     Given(f64, f64),
     /// The link's, if a few rays from the leaf confirm it; else traced.
     Check(f64, f64),
@@ -537,9 +538,9 @@ struct Entry {
     f: f64,
     /// Visible fraction.
     v: f64,
-    /// Relative error bar of the visible fraction.
+    /// Relative standard error of the entry's factor from its visibility rays (random).
     v_bar: f64,
-    /// Absolute quadrature bar of the unoccluded factor.
+    /// Absolute quadrature bar of the unoccluded factor (deterministic).
     q_bar: f64,
     /// True when the visibility was traced from this leaf (and is traced again for pieces
     /// of the source).
@@ -573,13 +574,14 @@ pub fn gather_lists(
     let (b, spread) = (&state.b, &state.spread);
     let leaves: Vec<u32> = e.leaves().collect();
     let n = (ctx.rays * ctx.rays) as f64;
-    // Per leaf: (source, factor, error bar) entries and the work spent.
-    type Entries = (Vec<(u32, f64, f64)>, Cost);
+    // Per leaf: (source, factor, quadrature bound, visibility standard error) entries and
+    // the work spent.
+    type Entries = (Vec<(u32, f64, f64, f64)>, Cost);
     let per_leaf: Vec<Entries> = leaves
         .par_iter()
         .map(|&l| {
             let li = l as usize;
-            let mut out: Vec<(u32, f64, f64)> = Vec::new();
+            let mut out: Vec<(u32, f64, f64, f64)> = Vec::new();
             let mut cost = Cost::default();
             if e.buried[li] {
                 return (out, cost);
@@ -602,27 +604,29 @@ pub fn gather_lists(
             // else traced), or traced.
             let piece = |src: u32, v: Sight, cost: &mut Cost| -> Option<Entry> {
                 let t = f_tol(src);
-                let (f, evals) = link::open_factor(ctx, l, src, t);
-                cost.evals += evals;
+                let open = link::open_factor(ctx, l, src, t);
+                let (f, q_err) = (open.value, open.err);
+                cost.evals += open.evals;
                 if f <= 0.0 {
                     return None;
                 }
+                // A traced fraction's relative bar: `se(v) / v` on `f v`.
+                let relative = |v: f64, rays: f64| fraction_se(v, rays) / v.max(1e-300);
                 let trace = |cost: &mut Cost| {
-                    let seen = link::visible_fraction(ctx, l, src);
+                    let seen = link::visible_fraction(ctx, l, src, Some(f));
                     cost.rays += seen.rays;
-                    (seen.v, (seen.v * (1.0 - seen.v) / n).sqrt(), true)
+                    (seen.v, relative(seen.v, n), true)
                 };
                 let (v, v_bar, traced) = match v {
                     Sight::Given(v, bar) => (v, bar, false),
                     Sight::Trace => trace(cost),
                     Sight::TraceWith(m) => {
-                        let seen = link::visible_fraction_n(ctx, l, src, m);
+                        let seen = link::visible_fraction_n(ctx, l, src, m, Some(f));
                         cost.rays += seen.rays;
-                        let nm = (m * m) as f64;
-                        (seen.v, (seen.v * (1.0 - seen.v) / nm).sqrt(), true)
+                        (seen.v, relative(seen.v, (m * m) as f64), true)
                     }
                     Sight::Check(v, bar) => {
-                        let seen = link::visible_fraction_n(ctx, l, src, CHECK_RAYS);
+                        let seen = link::visible_fraction_n(ctx, l, src, CHECK_RAYS, Some(f));
                         cost.rays += seen.rays;
                         if seen.v >= 1.0 {
                             (v, bar, false)
@@ -636,7 +640,9 @@ pub fn gather_lists(
                     f: f * v,
                     v,
                     v_bar,
-                    q_bar: t.min(ctx.quadrature * f),
+                    // The quadrature's own estimate: the integral stops at the looser of
+                    // the relative tolerance and `t`.
+                    q_bar: q_err * v,
                     traced,
                 })
             };
@@ -647,8 +653,7 @@ pub fn gather_lists(
                     src: k.src,
                     f: k.f,
                     v: k.vis,
-                    // The link's bar holds both parts.
-                    v_bar: 0.0,
+                    v_bar: k.se / k.f,
                     q_bar: k.err,
                     traced: k.partial,
                 })
@@ -663,7 +668,7 @@ pub fn gather_lists(
                     // box sees less of the wall behind it than its parent): unless the
                     // blockers' proof holds for the ancestor's link (then for every piece of
                     // the pair) or for the leaf itself, it checks its own.
-                    let bar = if k.f > 0.0 { k.err / k.f } else { 0.0 };
+                    let bar = if k.f > 0.0 { k.se / k.f } else { 0.0 };
                     let v = if k.partial {
                         Sight::Trace
                     } else if k.proved
@@ -689,7 +694,7 @@ pub fn gather_lists(
             while let Some(en) = stack.pop() {
                 let s = en.src;
                 if e.is_leaf(s) || weight(s, spread) * en.f <= descend * eps {
-                    out.push((s, en.f, en.f * en.v_bar + en.q_bar));
+                    out.push((s, en.f, en.q_bar, en.f * en.v_bar));
                     continue;
                 }
                 for c in e.children(s) {
@@ -718,15 +723,16 @@ pub fn gather_lists(
     g.start.push(0);
     for (list, c) in per_leaf {
         cost += c;
-        let (mut sum, mut bar) = (0.0, 0.0);
-        for (s, f, err) in list {
+        let (mut sum, mut bound, mut var) = (0.0, 0.0, 0.0);
+        for (s, f, q, se) in list {
             g.src.push(s);
             g.f.push(f);
             sum += f;
-            bar += err;
+            bound += q;
+            var += se * se;
         }
         g.start.push(g.src.len());
-        g.row_sum.push((sum, bar));
+        g.row_sum.push((sum, bound + var.sqrt()));
     }
     (g, cost)
 }
@@ -873,29 +879,35 @@ fn finish_report<'a>(
         eps: report.eps,
         min_area,
     };
-    // Error accumulated down the tree: a leaf's is the sum over its ancestors' links.
-    let mut down = vec![0.0f64; e.len()];
+    // Error accumulated down the tree: a leaf's is the sum over its ancestors' links of
+    // the deterministic parts (discretisation and quadrature), plus the root-sum-square
+    // of the links' visibility standard errors (independent rays).
+    let mut down = vec![(0.0f64, 0.0f64); e.len()];
     let mut unresolved = 0;
     for p in 0..e.len() {
-        let mut own = 0.0;
+        let (mut own, mut own_var) = (0.0, 0.0);
         for l in &links[p] {
             let (var, spr) = oracle.error(p as u32, l);
-            let bar = (0..3)
-                .map(|c| rho[p][c] * state.b[l.src as usize][c] * l.err)
-                .fold(0.0, f64::max);
-            own += var + spr + bar;
+            let carried = |x: f64| {
+                (0..3)
+                    .map(|c| rho[p][c] * state.b[l.src as usize][c] * x)
+                    .fold(0.0, f64::max)
+            };
+            own += var + spr + carried(l.err);
+            own_var += carried(l.se).powi(2);
             if var + spr > report.eps {
                 unresolved += 1;
             }
         }
         let parent = e.parent[p];
-        down[p] = own
-            + if parent == element::NONE {
-                0.0
-            } else {
-                down[parent as usize]
-            };
+        let up = if parent == element::NONE {
+            (0.0, 0.0)
+        } else {
+            down[parent as usize]
+        };
+        down[p] = (own + up.0, own_var + up.1);
     }
+    let down: Vec<f64> = down.iter().map(|&(lin, var)| lin + var.sqrt()).collect();
     report.unresolved = unresolved;
     let (mut worst, mut sum, mut area) = (0.0f64, 0.0, 0.0);
     for l in e.leaves() {

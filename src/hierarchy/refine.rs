@@ -344,6 +344,7 @@ mod tests {
             src: 0,
             f: 0.1,
             err: 0.0,
+            se: 0.0,
             df: 0.2,
             partial: false,
             vis: 1.0,

@@ -86,7 +86,8 @@ pub struct Gather {
     pub src: Vec<u32>,
     /// Factor of each entry (leaf to source, visibility included).
     pub f: Vec<f64>,
-    /// Per leaf: the sum of its factors and the sum of their error bars.
+    /// Per leaf: the sum of its factors and its error bar (the entries' quadrature bounds
+    /// added linearly, plus their visibility standard errors added in quadrature).
     pub row_sum: Vec<(f64, f64)>,
 }
 
