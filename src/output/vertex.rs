@@ -558,6 +558,7 @@ pub(crate) mod testing {
                     rho: [0.5; 3],
                     emit: [0.0; 3],
                     thermal: None,
+                    two_sided: false,
                 })
                 .collect(),
             objects: vec!["test".into()],
