@@ -100,7 +100,10 @@ fn semi_error_bars_are_calibrated_on_the_occluded_pair() {
     );
     // Unbiased: the mean standardized error of 200 runs is within 4 of its own standard
     // errors (about 1/sqrt(200) each) of 0.
-    assert!(mean_z.abs() < 4.0 / (runs.len() as f64).sqrt(), "mean z {mean_z:.3}");
+    assert!(
+        mean_z.abs() < 4.0 / (runs.len() as f64).sqrt(),
+        "mean z {mean_z:.3}"
+    );
 }
 
 /// The semi-analytic estimator (Gauss nodes, exact point-to-polygon factors) matches every

@@ -306,6 +306,19 @@ fn project(v: &VertexRadiosity, camera: &Camera, w: usize, h: usize) -> Vec<Scre
     v.triangles
         .par_iter()
         .enumerate()
+        .filter(|&(ti, t)| {
+            // Of the two sides of a two-sided face (one on the other), only the one facing
+            // the eye: drawing both would leave which one shows to rounding.
+            if !v.two_sided.get(ti).copied().unwrap_or(false) {
+                return true;
+            }
+            let [a, b, c] = t.map(|k| v.positions.get(k as usize).copied().unwrap_or(Vec3::NAN));
+            (b - a)
+                .as_dvec3()
+                .cross((c - a).as_dvec3())
+                .dot(a.as_dvec3() - eye)
+                <= 0.0
+        })
         .flat_map_iter(|(ti, t)| {
             let emits = v.emits.get(ti).copied().unwrap_or(false);
             let corner = |k: usize| {
