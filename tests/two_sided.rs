@@ -248,3 +248,52 @@ fn an_outward_room_is_warned_about_before_any_form_factor_and_hierarchy_refuses_
     assert!(!dir.join("hier").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn patches_that_see_nothing_are_told_about_two_sided_faces() {
+    // An open scene (no room to probe): a plate facing down under a lamp facing down. The
+    // plate sees nothing; the late warning names both fixes. Two-sided, the plate's back
+    // sees the lamp, the lamp's back sees nothing but its front does: no warning.
+    let dir = temp_dir("blind");
+    std::fs::write(
+        dir.join("m.mtl"),
+        "newmtl plate\nKd 0.5 0.5 0.5\nnewmtl lamp\nKe 1 1 1\n",
+    )
+    .unwrap();
+    std::fs::write(
+        dir.join("p.obj"),
+        "mtllib m.mtl\nusemtl plate\nv 0 0 0\nv 1 0 0\nv 1 0 1\nv 0 0 1\nf 1 2 3 4\n\
+         usemtl lamp\nv 0.4 1 0.4\nv 0.6 1 0.4\nv 0.6 1 0.6\nv 0.4 1 0.6\nf 5 6 7 8\n",
+    )
+    .unwrap();
+    let cfg = BakeConfig {
+        scene: dir.join("p.obj").to_string_lossy().into_owned(),
+        out_dir: dir.join("out"),
+        resolution: Resolution::MaxEdge(0.25),
+        preview: (16, 16),
+        ..BakeConfig::default()
+    };
+    let s = pipeline::bake(&cfg, &Quiet).expect("bake");
+    assert!(
+        s.warnings.iter().any(|w| w.contains("see nothing")
+            && w.contains("--two-sided")
+            && w.contains("flip them")),
+        "{:?}",
+        s.warnings
+    );
+    assert!(!s.warnings.iter().any(|w| w.contains("point out of it")));
+    let s = pipeline::bake(
+        &BakeConfig {
+            two_sided: true,
+            ..cfg
+        },
+        &Quiet,
+    )
+    .expect("bake");
+    assert!(
+        !s.warnings.iter().any(|w| w.contains("see nothing")),
+        "{:?}",
+        s.warnings
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
