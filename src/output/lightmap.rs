@@ -92,7 +92,7 @@ pub fn check(scene: &Scene, res: usize) -> Result<Vec<String>> {
         return Err(Error::Scene {
             scene: scene.source.clone(),
             msg: format!(
-                "--lightmap needs texture coordinates (`vt`) on every face, and {at}: a face \
+                "--lightmap needs texture coordinates (`vt`) on every face; {at}: a face \
                  of object `{object}` has none ({of_object} faces of `{object}` and {} in all \
                  lack them): give the model a UV map (Blender: UV > Smart UV Project or \
                  Lightmap Pack) and export it with UV coordinates",
