@@ -325,12 +325,10 @@ fn scan_lines(scene_name: &str, path: &Path, text: &str) -> Result<Scan> {
                 n_vertices += 1;
             }
             "vt" => {
-                // `vt u [v [w]]`: v defaults to 0, w (3D textures) is not used.
-                let n = rest.len().clamp(1, 2);
-                let t = parse_floats(path, line, "vt", rest, n)?;
+                // `vt u v [w]` (tobj needs both u and v; w, for 3D textures, is not used).
+                let t = parse_floats(path, line, "vt", rest, 2)?;
                 check_f32(path, line, "vt", &t)?;
-                scan.uvs
-                    .push(DVec2::new(t[0], t.get(1).copied().unwrap_or(0.0)));
+                scan.uvs.push(DVec2::new(t[0], t[1]));
             }
             "f" => {
                 if rest.len() < 3 {
@@ -945,6 +943,48 @@ mod tests {
                 .to_string();
             assert!(e.contains(want), "{e}");
         }
+    }
+
+    #[test]
+    fn texture_coordinates_are_kept_and_bad_ones_name_their_line() {
+        let obj = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0.5 0 0\n\
+                   f 1/1 2/2 3/3 4/-1\nf 1/1 2 3/3\nf 1 2 3\n";
+        let s = parse("t", Path::new("t.obj"), obj, &no_mtl).unwrap();
+        assert_eq!(s.faces.len(), 3);
+        assert!(s.faces[0].has_uv());
+        assert_eq!(s.uvs[s.faces[0].uv[3] as usize], DVec2::new(0.5, 0.0));
+        // A corner without `vt` (tobj would give it the previous corner's): no UVs.
+        assert!(!s.faces[1].has_uv() && !s.faces[2].has_uv());
+        for (text, want) in [
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/2 3/1\n",
+                "t.obj:5: face corner `2/2`",
+            ),
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/-2 2/1 3/1\n",
+                "t.obj:5: face corner `1/-2`",
+            ),
+            (
+                "v 0 0 0\nvt nan 0\n",
+                "t.obj:2: `vt` has a non-finite value",
+            ),
+            (
+                "v 0 0 0\nvt 0.5\n",
+                "t.obj:2: `vt` needs 2 numbers, found 1",
+            ),
+        ] {
+            let e = parse("t", Path::new("t.obj"), text, &no_mtl)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(want), "{e}");
+        }
+        let e = parse_mtl(Path::new("m.mtl"), "#@two-sided\nnewmtl a\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("m.mtl:1") && e.contains("before any `newmtl`"),
+            "{e}"
+        );
     }
 
     #[test]
