@@ -505,6 +505,30 @@ mod tests {
     }
 
     #[test]
+    fn mean_value_weights_reproduce_linear_values_in_a_concave_polygon() {
+        // An L (concave) and points inside it, on an edge and at a corner: the weights sum
+        // to 1 and carry any affine function of the corners to the point exactly.
+        let q = [[4., 0.], [4., 1.], [1., 1.], [1., 4.], [0., 4.], [0., 0.]];
+        let f = |p: [f64; 2]| 0.3 + 1.7 * p[0] - 0.6 * p[1];
+        for x in [
+            [0.5, 0.5],
+            [3.5, 0.5],
+            [0.5, 3.5],
+            [0.9, 0.9],
+            [2.0, 1.0],
+            [4.0, 1.0],
+        ] {
+            let w = mean_value_weights(&q, x);
+            let sum: f64 = w.iter().map(|&(_, v)| v).sum();
+            let value: f64 = w.iter().map(|&(i, v)| v * f(q[i])).sum();
+            assert!((sum - 1.0).abs() < 1e-12, "{x:?}: {sum}");
+            assert!((value - f(x)).abs() < 1e-12, "{x:?}: {value} vs {}", f(x));
+        }
+        // On the edge (1, 1)-(1, 4), only its two ends.
+        assert_eq!(mean_value_weights(&q, [1.0, 2.5]).len(), 2);
+    }
+
+    #[test]
     fn non_planar_quad_splits_along_the_better_diagonal() {
         // A long thin quad lifted at one corner: the diagonal 1-3 is the short one.
         let p = vec![
