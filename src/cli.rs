@@ -448,6 +448,14 @@ struct BakeArgs {
     /// with the ambient term, e.g. `--steps 1,2,24,100`.
     #[arg(long, value_delimiter = ',', value_name = "N,N,...")]
     steps: Vec<usize>,
+    /// Make every face two-sided: it emits, receives and reflects on both sides (each side
+    /// its own patches), as for walls modelled with their normals out of the room.
+    #[arg(long)]
+    two_sided: bool,
+    /// Also write a lightmap per object (and side), RES x RES texels in the OBJ's own
+    /// texture coordinates (`vt`): lightmap-OBJECT.exr, lightmaps.json.
+    #[arg(long, value_name = "RES")]
+    lightmap: Option<usize>,
 }
 
 #[derive(Args, Debug)]
@@ -464,6 +472,9 @@ struct FactorsArgs {
     /// Layout of the matrix files: Matrix Market text or SciPy's sparse npz.
     #[arg(long, value_enum, default_value_t = Format::Auto)]
     format: Format,
+    /// Make every face two-sided (see `bake --two-sided`).
+    #[arg(long)]
+    two_sided: bool,
 }
 
 #[derive(Args, Debug)]
@@ -502,6 +513,9 @@ struct ThermalArgs {
     /// get their exact first-order bars).
     #[arg(long, default_value_t = 16)]
     error_replicates: usize,
+    /// Make every face two-sided (see `bake --two-sided`).
+    #[arg(long)]
+    two_sided: bool,
 }
 
 /// Draws progress bars on a terminal, nothing otherwise.
@@ -511,6 +525,13 @@ struct Bars {
 }
 
 impl Observer for Bars {
+    fn warn(&self, msg: &str) {
+        let line = pipeline::wrap(&format!("warning: {msg}"), pipeline::WIDTH);
+        match self.bar.lock().ok().as_ref().and_then(|b| b.as_ref()) {
+            Some(bar) => bar.suspend(|| eprint!("{line}")),
+            None => eprint!("{line}"),
+        }
+    }
     fn begin(&self, stage: &str, total: u64) {
         if !self.tty || total == 0 {
             return;
@@ -743,6 +764,8 @@ fn bake(args: &BakeArgs) -> Result<()> {
         repair: args.est.repair,
         max_memory: args.est.max_memory,
         hierarchy,
+        two_sided: args.two_sided,
+        lightmap: args.lightmap,
     };
     let bars = Bars {
         bar: Mutex::new(None),
@@ -801,6 +824,7 @@ fn thermal(args: &ThermalArgs) -> Result<()> {
         },
         repair: args.est.repair,
         max_memory: args.est.max_memory,
+        two_sided: args.two_sided,
     };
     let bars = Bars {
         bar: Mutex::new(None),
@@ -912,6 +936,7 @@ pub fn run() -> Result<()> {
                 args.factors.repair,
                 args.format,
                 args.factors.max_memory,
+                args.two_sided,
                 &bars,
             )?;
             use std::fmt::Write;
@@ -946,6 +971,9 @@ pub fn run() -> Result<()> {
             writeln!(o, "{}", pipeline::format_times(&s.stages, s.peak_memory))?;
             if !p.objects_skipped.is_empty() {
                 writeln!(o, "warning: no object tables: {}", p.objects_skipped)?;
+            }
+            for w in &s.warnings {
+                writeln!(o, "warning: {w}")?;
             }
             writeln!(
                 o,

@@ -540,6 +540,12 @@ impl FormFactors {
         })
     }
 
+    /// True when row `i` stores no factor: patch `i` sees nothing (as counted by
+    /// [`Diagnostics::empty_rows`]).
+    pub fn row_is_empty(&self, i: usize) -> bool {
+        self.f.indptr().index(i) == self.f.indptr().index(i + 1)
+    }
+
     /// Standard error of the sum of row `i` (entries' errors added in quadrature).
     pub fn row_sum_stderr(&self, i: usize) -> f64 {
         let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));

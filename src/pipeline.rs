@@ -140,6 +140,12 @@ pub struct BakeConfig {
     /// Length unit of the scene's coordinates, over its `#@units` line: `mesh.glb` is
     /// scaled by it to metres (none at all: the coordinates are taken as metres).
     pub units: Option<Units>,
+    /// Every face two-sided ([`Scene::make_two_sided`]), over the MTL's `#@two-sided`
+    /// materials.
+    pub two_sided: bool,
+    /// Also write a lightmap of this many texels a side per object and side, in the OBJ's
+    /// texture coordinates ([`output::lightmap`]); every face must have them.
+    pub lightmap: Option<usize>,
 }
 
 impl Default for BakeConfig {
@@ -167,12 +173,17 @@ impl Default for BakeConfig {
             max_memory: None,
             camera: None,
             units: None,
+            two_sided: false,
+            lightmap: None,
         }
     }
 }
 
 /// Hears about the pipeline's progress.
 pub trait Observer: Sync {
+    /// Something the user should know now, found before the expensive work (it is also in
+    /// the run's summary).
+    fn warn(&self, _msg: &str) {}
     /// A stage begins; `total` units of work (0 when unknown).
     fn begin(&self, _stage: &str, _total: u64) {}
     /// `done` units of the current stage are finished.
@@ -305,17 +316,49 @@ pub fn check_budget(
 /// Share of the patches that may see nothing before a bake warns about normals.
 const BLIND_SHARE: f64 = 0.1;
 
+/// Loads a scene by name or path ([`Scene::load`], which makes the faces of `#@two-sided`
+/// materials two-sided) and makes every face two-sided when `two_sided`.
+pub fn load_scene(name: &str, two_sided: bool) -> Result<Scene> {
+    let mut scene = Scene::load(name)?;
+    if two_sided {
+        scene.make_two_sided(true);
+    }
+    Ok(scene)
+}
+
+/// The checks every run makes on a loaded scene before the expensive work: a closed room
+/// whose faces point out ([`Scene::inside_out_warning`]) is warned about now, through
+/// `obs`, and the warning is returned for the summary.
+fn early_warnings(scene: &Scene, obs: &dyn Observer) -> Vec<String> {
+    let w: Vec<String> = scene.inside_out_warning().into_iter().collect();
+    for m in &w {
+        obs.warn(m);
+    }
+    w
+}
+
+/// Patches that see nothing (`row_sum` exactly 0) and whose other side, when they have
+/// one, sees nothing either: the back of a two-sided wall facing out of a room sees
+/// nothing, but its front does, and the surface is fine.
+fn blind_patches(patches: &PatchSet, ff: &FormFactors) -> usize {
+    let empty: Vec<bool> = (0..ff.len()).map(|i| ff.row_is_empty(i)).collect();
+    (0..ff.len())
+        .filter(|&i| empty[i] && patches.twin_of(i).is_none_or(|t| empty[t]))
+        .count()
+}
+
 /// A warning, with the likely cause and its fix, when at least [`BLIND_SHARE`] of the
-/// `n` patches see nothing (`empty` rows): surfaces emit and receive only on the side their
-/// counter-clockwise winding faces, and a closed room modelled as a box with normals out
-/// (Blender's default cube) sees nothing from inside.
+/// `n` patches see nothing (`empty` of them, counted by [`blind_patches`]): surfaces emit
+/// and receive only on the side their counter-clockwise winding faces, and a closed room
+/// modelled as a box with normals out (Blender's default cube) sees nothing from inside.
 fn blind_warning(empty: usize, n: usize) -> Option<String> {
     (empty > 0 && empty as f64 >= BLIND_SHARE * n as f64).then(|| {
         format!(
             "{empty} of {n} patches ({:.0}%) see nothing: their fronts face away from the \
              rest of the scene. Faces emit and receive only on the side their \
              counter-clockwise winding faces; if walls were modelled with normals pointing \
-             out of the room, flip them (Blender: Mesh > Normals > Flip, then export again)",
+             out of the room, bake with --two-sided (or `#@two-sided` in their material) \
+             or flip them (Blender: Mesh > Normals > Flip, then export again)",
             100.0 * empty as f64 / n as f64
         )
     })
@@ -497,10 +540,21 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         stages: Vec::new(),
     };
     output::check_folder(&cfg.out_dir, FolderKind::Bake)?;
-    let scene = timer.run("load", 0, || Scene::load(&cfg.scene))?;
+    let scene = timer.run("load", 0, || load_scene(&cfg.scene, cfg.two_sided))?;
     scene.require_emitter()?;
+    let mut early = match cfg.lightmap {
+        Some(res) => output::lightmap::check(&scene, res)?,
+        None => Vec::new(),
+    };
+    if cfg.hierarchy.is_some() {
+        check_hierarchical(&scene)?;
+    }
+    for w in &early {
+        obs.warn(w);
+    }
+    early.extend(early_warnings(&scene, obs));
     if let Some(h) = &cfg.hierarchy {
-        return bake_hierarchical(cfg, h, scene, timer);
+        return bake_hierarchical(cfg, h, scene, early, timer);
     }
     check_budget(
         &scene,
@@ -545,7 +599,7 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     let verts = timer.run("per-vertex", 0, || {
         output::interpolate(&patches, &b, cfg.crease_deg)
     });
-    let files = timer.run("write", 0, || -> Result<Vec<PathBuf>> {
+    let (files, late) = timer.run("write", 0, || -> Result<(Vec<PathBuf>, Vec<String>)> {
         write_bake(cfg, &scene, &patches, &verts, |dir, camera, exposure| {
             if cfg.steps.is_empty() {
                 return Ok(Vec::new());
@@ -579,11 +633,37 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
             .warnings
             .iter()
             .cloned()
-            .chain(blind_warning(diagnostics.empty_rows, patches.len()))
+            .chain(early.iter().cloned())
+            .chain(
+                blind_warning(blind_patches(&patches, &ff), patches.len())
+                    .filter(|_| !early.iter().any(|w| w.contains("point out of it"))),
+            )
+            .chain(late)
             .collect(),
         embree,
         hierarchy: None,
     })
+}
+
+/// Refuses, before any work, what the hierarchical method does not support: two-sided
+/// faces (its contact and burial tests take a face's back for the inside of a solid, and
+/// the two sides of a two-sided face lie on each other).
+fn check_hierarchical(scene: &Scene) -> Result<()> {
+    if let Some(f) = scene.faces.iter().find(|f| f.is_two_sided()) {
+        let m = &scene.materials[f.material as usize];
+        let why = if m.two_sided {
+            format!("material `{}` is `#@two-sided`", m.name)
+        } else {
+            "--two-sided was given".to_string()
+        };
+        return Err(Error::Config(format!(
+            "--method hierarchical does not support two-sided faces ({why}, line {} of {}): \
+             bake them with --method flat, or make the faces one-sided (drop --two-sided, \
+             or flip the normals of walls that face out of the room)",
+            f.line, scene.source
+        )));
+    }
+    Ok(())
 }
 
 /// Writes `radiosity.exr`, `preview.png`, `mesh.ply` and `mesh.glb` of a bake (`patches`
@@ -596,7 +676,8 @@ fn write_bake(
     patches: &PatchSet,
     verts: &output::VertexRadiosity,
     extra: impl FnOnce(&std::path::Path, &crate::scene::Camera, f32) -> Result<Vec<PathBuf>>,
-) -> Result<Vec<PathBuf>> {
+) -> Result<(Vec<PathBuf>, Vec<String>)> {
+    let mut warnings = Vec::new();
     let names = output::write_folder(&cfg.out_dir, FolderKind::Bake, |dir| {
         output::write_exr(&dir.join("radiosity.exr"), verts, &scene.name)?;
         let camera = cfg.camera.unwrap_or_else(|| scene.camera_or_framing());
@@ -631,11 +712,20 @@ fn write_bake(
             "mesh.glb".into(),
             "preview.png".into(),
         ];
+        if let Some(res) = cfg.lightmap {
+            let (files, w) =
+                output::lightmap::write_all(dir, scene, patches, verts, res, image.exposure)?;
+            names.extend(files.into_iter().map(PathBuf::from));
+            warnings = w;
+        }
         let more = extra(dir, &camera, image.exposure)?;
         names.extend(more.iter().filter_map(|p| p.file_name()).map(PathBuf::from));
         Ok(names)
     })?;
-    Ok(names.iter().map(|n| cfg.out_dir.join(n)).collect())
+    Ok((
+        names.iter().map(|n| cfg.out_dir.join(n)).collect(),
+        warnings,
+    ))
 }
 
 /// The hierarchical bake after loading: root patches, BVH, refine-and-solve passes, the
@@ -644,6 +734,7 @@ fn bake_hierarchical(
     cfg: &BakeConfig,
     settings: &hierarchy::Settings,
     scene: Scene,
+    early: Vec<String>,
     mut timer: Timer,
 ) -> Result<BakeSummary> {
     settings.validate()?;
@@ -669,7 +760,7 @@ fn bake_hierarchical(
     let verts = timer.run("per-vertex", 0, || {
         output::interpolate_with(&leaves, &b, cfg.crease_deg, output::Nodal::Linear)
     });
-    let files = timer.run("write", 0, || {
+    let (files, late) = timer.run("write", 0, || {
         write_bake(cfg, &scene, &leaves, &verts, |_, _, _| Ok(Vec::new()))
     })?;
     let r = sol.report;
@@ -701,7 +792,13 @@ fn bake_hierarchical(
         stages: timer.stages,
         peak_memory: peak_memory(),
         files,
-        warnings: scene.warnings.clone(),
+        warnings: scene
+            .warnings
+            .iter()
+            .cloned()
+            .chain(early)
+            .chain(late)
+            .collect(),
         embree,
         hierarchy: Some(r),
     })
@@ -720,6 +817,8 @@ pub struct FactorsSummary {
     pub stages: Vec<StageTime>,
     /// Peak resident memory in bytes.
     pub peak_memory: u64,
+    /// Warnings about the scene (a closed room whose faces point out).
+    pub warnings: Vec<String>,
 }
 
 /// Computes form factors for a scene and stores them in `out_dir` (see [`store`]), within
@@ -742,6 +841,7 @@ pub fn factors(
         repair,
         store::Format::Auto,
         None,
+        false,
         obs,
     )
 }
@@ -758,6 +858,7 @@ pub fn factors_within(
     repair: Repair,
     format: store::Format,
     max_memory: Option<u64>,
+    two_sided: bool,
     obs: &dyn Observer,
 ) -> Result<FactorsSummary> {
     let mut timer = Timer {
@@ -765,7 +866,8 @@ pub fn factors_within(
         stages: Vec::new(),
     };
     output::check_folder(out_dir, FolderKind::Factors)?;
-    let scene = timer.run("load", 0, || Scene::load(scene))?;
+    let scene = timer.run("load", 0, || load_scene(scene, two_sided))?;
+    let warnings = early_warnings(&scene, obs);
     check_budget(&scene, resolution, Some(estimator), None, None, max_memory)?;
     let patches = timer.run("mesh", 0, || PatchSet::build(&scene, resolution))?;
     let (ff, stages, _) = form_factors(&patches, estimator, seed, obs)?;
@@ -775,12 +877,18 @@ pub fn factors_within(
     let provenance = timer.run("write", 0, || {
         store::write(out_dir, &patches, &ff, repair, format)
     })?;
+    let warnings = warnings
+        .into_iter()
+        .chain(blind_warning(blind_patches(&patches, &ff), patches.len()))
+        .take(1)
+        .collect();
     Ok(FactorsSummary {
         provenance,
         diagnostics,
         repair: repair_report,
         stages: timer.stages,
         peak_memory: peak_memory(),
+        warnings,
     })
 }
 
@@ -1009,6 +1117,8 @@ pub struct ThermalConfig {
     pub repair: Repair,
     /// Memory the run may plan to use, in bytes.
     pub max_memory: Option<u64>,
+    /// Every face two-sided, over the MTL's `#@two-sided` materials.
+    pub two_sided: bool,
 }
 
 impl Default for ThermalConfig {
@@ -1027,6 +1137,7 @@ impl Default for ThermalConfig {
             settings: crate::thermal::Settings::default(),
             repair: Repair::None,
             max_memory: None,
+            two_sided: false,
         }
     }
 }
@@ -1085,7 +1196,12 @@ pub struct ThermalSummary {
 /// boundary-conditions file over them; every material a face uses must end with thermal
 /// properties ([`crate::thermal::bc::require`]).
 pub fn thermal_scene(scene: &str, bc: Option<&Path>) -> Result<Scene> {
-    let mut s = Scene::load(scene)?;
+    thermal_scene_sided(scene, bc, false)
+}
+
+/// [`thermal_scene`], every face two-sided when `two_sided`.
+pub fn thermal_scene_sided(scene: &str, bc: Option<&Path>, two_sided: bool) -> Result<Scene> {
+    let mut s = load_scene(scene, two_sided)?;
     if let Some(path) = bc {
         let rows = crate::thermal::bc::read(path)?;
         crate::thermal::bc::apply(&mut s, path, &rows)?;
@@ -1120,7 +1236,10 @@ pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary
             s.tolerance
         )));
     }
-    let scene = timer.run("load", 0, || thermal_scene(&cfg.scene, cfg.bc.as_deref()))?;
+    let scene = timer.run("load", 0, || {
+        thermal_scene_sided(&cfg.scene, cfg.bc.as_deref(), cfg.two_sided)
+    })?;
+    let early = early_warnings(&scene, obs);
     check_budget(
         &scene,
         cfg.resolution,
@@ -1306,7 +1425,7 @@ pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary
         stages: timer.stages,
         peak_memory: peak_memory(),
         files,
-        warnings: scene.warnings.clone(),
+        warnings: scene.warnings.iter().cloned().chain(early).collect(),
     })
 }
 

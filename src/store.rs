@@ -786,7 +786,7 @@ pub fn read_located(dir: &Path, patches: &PatchSet) -> Result<(FormFactors, Path
             path: prov_path,
             msg: format!(
                 "factors were computed for {} patches of `{}`; this scene has {} patches \
-                 (use the same scene and --patches/--max-edge)",
+                 (use the same scene, --patches/--max-edge and --two-sided)",
                 prov.patches,
                 prov.scene,
                 patches.len()

@@ -261,6 +261,7 @@ fn factors_in(dir: &std::path::Path, patches: usize, seed: u64, format: store::F
         Repair::None,
         format,
         None,
+        false,
         &Quiet,
     )
     .expect("factors");

@@ -657,6 +657,7 @@ fn npz_factors_give_the_thermal_solution_text_factors_give() {
             Repair::None,
             format,
             None,
+            false,
             &Quiet,
         )
         .expect("factors");

@@ -23,9 +23,10 @@
 //!
 //! A patch k can block a segment from `x ∈ P_i` to `y ∈ P_j` only if it meets the convex
 //! hull of the two patches. It cannot when it is a *hull face* (every corner of the scene
-//! lies on or in front of its plane: segments between scene points never cross that plane,
-//! as for the walls of a convex room; found once per scene), when all its corners lie on or
-//! behind the plane of i or of j, when both patches lie wholly in front of its plane, or
+//! lies on or in front of its plane, or every one on or behind it: segments between scene
+//! points never cross that plane, as for the walls of a convex room and the outer side of
+//! two-sided walls; found once per scene), when all its corners lie on or behind the plane
+//! of i or of j, when both patches lie wholly on one side of its plane, or
 //! when its bounding box misses the box of the two patches. When every other patch is
 //! excluded, the pair is unoccluded. The test is conservative (a box overlap does not prove
 //! an occlusion), and costs nothing per pair in a convex room, where every patch is a hull
@@ -201,7 +202,11 @@ impl Prepared {
                 // once; otherwise scan the corners, stopping at the first one behind.
                 let bound = (n * lo).min(n * hi).element_sum() - n.dot(c);
                 let hull = bound >= -tol || corners.iter().all(|&q| n.dot(q - c) >= -tol);
-                !hull
+                // The whole scene behind the plane (the outer side of a two-sided wall)
+                // blocks nothing either: no segment crosses that plane.
+                let upper = (n * lo).max(n * hi).element_sum() - n.dot(c);
+                let shell = upper <= tol || corners.iter().all(|&q| n.dot(q - c) <= tol);
+                !(hull || shell)
             })
             .map(|k| k as u32)
             .collect();
@@ -252,9 +257,10 @@ impl SemiAnalytic {
             if plane_range(p, j, k).1 <= tol {
                 return true;
             }
-            // Both patches wholly on the front side of k's plane: segments between them
-            // cannot cross that plane, so k cannot block.
-            plane_range(p, k, i).0 >= -tol && plane_range(p, k, j).0 >= -tol
+            // Both patches wholly on one side of k's plane: segments between them cannot
+            // cross that plane, so k cannot block.
+            let (ki, kj) = (plane_range(p, k, i), plane_range(p, k, j));
+            (ki.0 >= -tol && kj.0 >= -tol) || (ki.1 <= tol && kj.1 <= tol)
         })
     }
 }

@@ -55,6 +55,9 @@ pub struct PatchSet {
     pub face: Vec<u32>,
     /// Object index of each patch (into `objects`).
     pub object: Vec<u32>,
+    /// The patch on the other side of each patch of a two-sided face (the same corners
+    /// wound the other way), or [`NONE`]; empty when no face is two-sided.
+    pub twin: Vec<u32>,
     /// Materials (copied from the scene).
     pub materials: Vec<Material>,
     /// Object names (copied from the scene, [`Scene::objects`]).
@@ -85,6 +88,14 @@ impl PatchSet {
     /// Reflectance of patch `i`.
     pub fn rho(&self, i: usize) -> [f64; 3] {
         self.materials[self.material[i] as usize].rho
+    }
+
+    /// The patch on the other side of patch `i` ([`PatchSet::twin`]), if it has one.
+    pub fn twin_of(&self, i: usize) -> Option<usize> {
+        self.twin
+            .get(i)
+            .filter(|&&t| t != NONE)
+            .map(|&t| t as usize)
     }
 
     /// Name of the object of patch `i`.
@@ -175,8 +186,18 @@ impl PatchSet {
             max_edge,
             ..Default::default()
         };
+        // Patches of each face, so that the back of a two-sided face copies its front's.
+        let mut range = Vec::with_capacity(scene.faces.len());
         for (fi, face) in scene.faces.iter().enumerate() {
-            set.add_face(scene, fi as u32, face, max_edge);
+            let start = set.len();
+            match range.get(face.twin as usize) {
+                Some(&(a, b)) if face.back => set.add_back(a..b, face, fi as u32),
+                _ => set.add_face(scene, fi as u32, face, max_edge),
+            }
+            range.push((start, set.len()));
+        }
+        if !set.twin.is_empty() {
+            set.twin.resize(set.len(), NONE);
         }
         if set.len() > (u32::MAX / 4) as usize {
             return Err(Error::Config(format!("{} patches are too many", set.len())));
@@ -239,6 +260,36 @@ impl PatchSet {
                     }
                 }
             }
+        }
+    }
+
+    /// The back of a two-sided face: a copy of the patches `front` (its twin's) with their
+    /// corners wound the other way (corner 0 first), on vertices of its own, so each back
+    /// patch lies exactly on its front patch and its triangles on the front's triangles
+    /// (the same diagonal). Front and back are each other's [`PatchSet::twin`].
+    fn add_back(&mut self, front: std::ops::Range<usize>, face: &Face, fi: u32) {
+        if self.twin.len() < self.len() {
+            self.twin.resize(self.len(), NONE);
+        }
+        let mut copy: std::collections::HashMap<u32, u32> = std::collections::HashMap::new();
+        for p in front {
+            let c = self.corners[p];
+            let mut v = |k: u32| -> u32 {
+                *copy.entry(k).or_insert_with(|| {
+                    self.vertices.push(self.vertices[k as usize]);
+                    (self.vertices.len() - 1) as u32
+                })
+            };
+            let back = if c[3] == NONE {
+                [v(c[0]), v(c[2]), v(c[1]), NONE]
+            } else {
+                [v(c[0]), v(c[3]), v(c[2]), v(c[1])]
+            };
+            let id = self.len();
+            self.push_patch(back, face, fi);
+            self.twin.resize(self.len(), NONE);
+            self.twin[id] = p as u32;
+            self.twin[p] = id as u32;
         }
     }
 

@@ -325,6 +325,101 @@ pub fn read_vertex_channels(
     })
 }
 
+/// Writes an image of `width x height` pixels (row-major, rows top to bottom) with the
+/// float channels `planes` (name, one value per pixel) and the text attributes `attrs`,
+/// ZIP-compressed, attributes in name order (identical images are identical files),
+/// through [`write_atomic`]: the lightmaps' writer ([`crate::output::lightmap`]).
+pub fn write_image(
+    path: &Path,
+    (width, height): (usize, usize),
+    planes: Vec<(&str, Vec<f32>)>,
+    attrs: &[(&str, &str)],
+) -> Result<()> {
+    if let Some((name, _)) = planes.iter().find(|(_, p)| p.len() != width * height) {
+        return Err(Error::Output {
+            path: path.to_path_buf(),
+            msg: format!("channel `{name}` does not hold {width} x {height} values"),
+        });
+    }
+    let channels: SmallVec<[AnyChannel<FlatSamples>; 4]> = planes
+        .into_iter()
+        .map(|(name, plane)| AnyChannel::new(name, FlatSamples::F32(plane)))
+        .collect();
+    let mut attributes = LayerAttributes {
+        software_name: Some(text(&format!("radiosity {}", env!("CARGO_PKG_VERSION")))),
+        ..LayerAttributes::default()
+    };
+    for (k, v) in attrs {
+        attributes
+            .other
+            .insert(text(k), AttributeValue::Text(text(v)));
+    }
+    let encoding = Encoding {
+        compression: Compression::ZIP16,
+        blocks: Blocks::ScanLines,
+        line_order: LineOrder::Increasing,
+    };
+    let layer = Layer::new(
+        (width, height),
+        attributes,
+        encoding,
+        AnyChannels::sort(channels),
+    );
+    let mut bytes = Vec::new();
+    Image::from_layer(layer)
+        .write()
+        .to_buffered(std::io::Cursor::new(&mut bytes))
+        .map_err(|e| exr_error(path, e, "cannot write the EXR file"))?;
+    sort_attributes(&mut bytes).ok_or_else(|| Error::Output {
+        path: path.to_path_buf(),
+        msg: "the EXR writer made a header this crate cannot read back".into(),
+    })?;
+    write_atomic(path, |tmp| {
+        std::fs::write(tmp, &bytes).map_err(|e| Error::io(tmp, e))
+    })
+}
+
+/// An image read by [`read_image`]: size, float channels by name, text attributes.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ExrImage {
+    /// Width and height in pixels.
+    pub size: (usize, usize),
+    /// Channels by name, row-major, rows top to bottom.
+    pub channels: std::collections::BTreeMap<String, Vec<f32>>,
+    /// Text attributes by name.
+    pub attrs: std::collections::BTreeMap<String, String>,
+}
+
+/// Reads every channel (as f32) and text attribute of the first layer of an EXR file.
+pub fn read_image(path: &Path) -> Result<ExrImage> {
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_file(path)
+        .map_err(|e| exr_error(path, e, "not a readable EXR file"))?;
+    let layer = &image.layer_data;
+    let mut out = ExrImage {
+        size: (layer.size.x(), layer.size.y()),
+        ..Default::default()
+    };
+    for c in &layer.channel_data.list {
+        out.channels
+            .insert(c.name.to_string(), c.sample_data.values_as_f32().collect());
+    }
+    for (k, v) in &layer.attributes.other {
+        if let AttributeValue::Text(t) = v {
+            out.attrs.insert(
+                k.to_string(),
+                String::from_utf8_lossy(t.bytes()).into_owned(),
+            );
+        }
+    }
+    Ok(out)
+}
+
 /// An EXR text attribute holding the UTF-8 bytes of `s` (NUL bytes dropped, as the format
 /// ends strings with them). OpenEXR strings carry no declared encoding; UTF-8 is the
 /// common practice.

@@ -410,6 +410,7 @@ mod tests {
     /// Two objects: a unit square (two triangles) and a triangle, sharing vertex 1.
     fn bake() -> VertexRadiosity {
         VertexRadiosity {
+            two_sided: Vec::new(),
             positions: vec![
                 Vec3::new(0.0, 0.0, 0.0),
                 Vec3::new(1000.0, 0.0, 0.0),

@@ -12,6 +12,8 @@
 //!   ([`write_ply`]);
 //! - [`gltf`]: the same mesh as binary glTF 2.0, one node per scene object, in metres
 //!   ([`write_glb`]);
+//! - [`lightmap`]: the same radiosity as one texture per object in the OBJ's own texture
+//!   coordinates, dilated across seams ([`lightmap::write_all`]);
 //! - [`preview`]: a small software rasterizer that renders the bake from the scene's camera
 //!   into an 8-bit sRGB image ([`render_preview`], [`write_png`]);
 //! - [`thermal`]: the thermal mode's per-patch and per-surface tables as CSV, and its
@@ -26,6 +28,7 @@ pub mod chart;
 pub mod exr;
 pub mod folder;
 pub mod gltf;
+pub mod lightmap;
 pub mod ply;
 pub mod preview;
 pub mod thermal;

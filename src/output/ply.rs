@@ -202,6 +202,7 @@ mod tests {
 
     fn quad() -> VertexRadiosity {
         VertexRadiosity {
+            two_sided: Vec::new(),
             positions: vec![
                 Vec3::new(0.0, 0.0, 0.0),
                 Vec3::new(1.0, 0.0, 0.0),

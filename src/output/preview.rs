@@ -306,6 +306,19 @@ fn project(v: &VertexRadiosity, camera: &Camera, w: usize, h: usize) -> Vec<Scre
     v.triangles
         .par_iter()
         .enumerate()
+        .filter(|&(ti, t)| {
+            // Of the two sides of a two-sided face (one on the other), only the one facing
+            // the eye: drawing both would leave which one shows to rounding.
+            if !v.two_sided.get(ti).copied().unwrap_or(false) {
+                return true;
+            }
+            let [a, b, c] = t.map(|k| v.positions.get(k as usize).copied().unwrap_or(Vec3::NAN));
+            (b - a)
+                .as_dvec3()
+                .cross((c - a).as_dvec3())
+                .dot(a.as_dvec3() - eye)
+                <= 0.0
+        })
         .flat_map_iter(|(ti, t)| {
             let emits = v.emits.get(ti).copied().unwrap_or(false);
             let corner = |k: usize| {
@@ -471,6 +484,7 @@ mod tests {
     /// One triangle in the plane z = 0 with the given corners' radiosity.
     fn triangle(p: [Vec3; 3], rgb: [[f32; 3]; 3]) -> VertexRadiosity {
         VertexRadiosity {
+            two_sided: Vec::new(),
             positions: p.to_vec(),
             normals: vec![Vec3::NEG_Z; 3],
             rgb: rgb.to_vec(),
@@ -556,6 +570,7 @@ mod tests {
             let mut positions = far.to_vec();
             positions.extend(near);
             let v = VertexRadiosity {
+                two_sided: Vec::new(),
                 positions,
                 normals: vec![Vec3::Z; 6],
                 rgb: [[1.0, 0.0, 0.0]; 3]
@@ -578,6 +593,7 @@ mod tests {
     fn auto_exposure_leaves_emitters_out() {
         // A lamp (radiosity 50) beside a wall (0.2), each covering half the view.
         let v = VertexRadiosity {
+            two_sided: Vec::new(),
             positions: vec![
                 Vec3::new(-9.0, -9.0, 0.0),
                 Vec3::new(0.0, -9.0, 0.0),
@@ -642,6 +658,7 @@ mod tests {
         // not the screen-space lerp.
         let (z0, z1) = (1.0f32, 9.0f32);
         let v = VertexRadiosity {
+            two_sided: Vec::new(),
             positions: vec![
                 Vec3::new(-50.0, -1.0, z0),
                 Vec3::new(50.0, -1.0, z0),

@@ -284,6 +284,7 @@ mod tests {
 
     fn fields(t: [f32; 3]) -> VertexFields {
         let mesh = crate::output::VertexRadiosity {
+            two_sided: Vec::new(),
             positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y],
             normals: vec![Vec3::Z; 3],
             rgb: vec![[0.0; 3]; 3],

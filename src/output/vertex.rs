@@ -72,6 +72,9 @@ pub struct VertexRadiosity {
     /// Whether each triangle's surface emits (empty: none does); the preview's automatic
     /// exposure leaves emitters out.
     pub emits: Vec<bool>,
+    /// Whether each triangle is one side of a two-sided face, lying on the other side's
+    /// triangle (empty: none is); the preview draws only the side facing the camera.
+    pub two_sided: Vec<bool>,
 }
 
 impl VertexRadiosity {
@@ -212,6 +215,15 @@ pub fn interpolate_with(
             .iter()
             .map(|&p| patches.materials[patches.material[p as usize] as usize].is_emitter())
             .collect(),
+        two_sided: if patches.twin.is_empty() {
+            Vec::new()
+        } else {
+            patches
+                .tri_patch
+                .iter()
+                .map(|&p| patches.twin_of(p as usize).is_some())
+                .collect()
+        },
         ..Default::default()
     };
     let mut root_of_out: Vec<u32> = Vec::new();
@@ -558,6 +570,7 @@ pub(crate) mod testing {
                     rho: [0.5; 3],
                     emit: [0.0; 3],
                     thermal: None,
+                    two_sided: false,
                 })
                 .collect(),
             objects: vec!["test".into()],

@@ -13,7 +13,7 @@ pub mod builtin;
 pub mod obj;
 pub mod polygon;
 
-use glam::{DVec3, Vec3};
+use glam::{DVec2, DVec3, Vec3};
 
 use crate::error::{Error, Result};
 
@@ -40,6 +40,9 @@ pub struct Material {
     /// boundary-conditions file); `None` when the material has none. The visible-light
     /// bake ignores it.
     pub thermal: Option<Thermal>,
+    /// Two-sided (MTL `#@two-sided`): every face of the material emits, receives and
+    /// reflects on both sides, as two faces back to back ([`Scene::make_two_sided`]).
+    pub two_sided: bool,
 }
 
 /// Upper bound on a boundary temperature, K (far above any gray-surface problem; keeps
@@ -148,6 +151,15 @@ pub struct Face {
     pub object: u32,
     /// 1-based line of the OBJ file that defined the face (0 when generated).
     pub line: u32,
+    /// Texture coordinates of the corners, as indices into [`Scene::uvs`] (OBJ `vt`), in
+    /// the order of `corners`; all [`Face::NONE`] when the face has none.
+    pub uv: [u32; 4],
+    /// The face's other side, for a two-sided surface ([`Scene::make_two_sided`]): the
+    /// index of the face with the same corners wound the other way; [`Face::NONE`] for a
+    /// one-sided face.
+    pub twin: u32,
+    /// True for the side [`Scene::make_two_sided`] added: the back of the face as written.
+    pub back: bool,
 }
 
 impl Face {
@@ -171,6 +183,30 @@ impl Face {
     /// The corner indices actually used.
     pub fn corner_slice(&self) -> &[u32] {
         &self.corners[..self.len()]
+    }
+
+    /// A face with these corners, material, object and line, without texture coordinates
+    /// and one-sided.
+    pub fn new(corners: [u32; 4], material: u32, object: u32, line: u32) -> Face {
+        Face {
+            corners,
+            material,
+            object,
+            line,
+            uv: [Face::NONE; 4],
+            twin: Face::NONE,
+            back: false,
+        }
+    }
+
+    /// True when every corner has texture coordinates.
+    pub fn has_uv(&self) -> bool {
+        self.uv[..self.len()].iter().all(|&u| u != Face::NONE)
+    }
+
+    /// True when the face is one side of a two-sided surface.
+    pub fn is_two_sided(&self) -> bool {
+        self.twin != Face::NONE
     }
 }
 
@@ -264,6 +300,8 @@ pub struct Scene {
     pub positions: Vec<DVec3>,
     /// Planar convex polygons.
     pub faces: Vec<Face>,
+    /// Texture coordinates (OBJ `vt`, `u` right and `v` up), indexed by [`Face::uv`].
+    pub uvs: Vec<DVec2>,
     /// Materials referenced by the faces.
     pub materials: Vec<Material>,
     /// Object names, each used by some face and none repeated: the OBJ `o` / `g` names,
@@ -378,12 +416,126 @@ impl Scene {
                 }
                 if best.is_none_or(|(bt, _)| t < bt) {
                     // det = -d . (e1 x e2): positive when the face's normal faces the
-                    // ray's origin.
-                    best = Some((t, det > 0.0));
+                    // ray's origin. A two-sided face has a front toward every ray (its
+                    // twin lies on it, wound the other way).
+                    best = Some((t, det > 0.0 || f.is_two_sided()));
                 }
             }
         }
         best
+    }
+
+    /// The farthest face met by the ray `o + t d` (t > 0), as [`Scene::first_hit`] gives
+    /// the nearest: its distance and whether the ray meets its front.
+    fn last_hit(&self, o: DVec3, d: DVec3) -> Option<(f64, bool)> {
+        let mut best: Option<(f64, bool)> = None;
+        for f in &self.faces {
+            let c = f.corner_slice();
+            let p = |k: usize| self.positions[c[k] as usize];
+            for k in 1..c.len() - 1 {
+                let (a, b, e) = (p(0), p(k), p(k + 1));
+                let (e1, e2) = (b - a, e - a);
+                let h = d.cross(e2);
+                let det = e1.dot(h);
+                if det.abs() < 1e-300 {
+                    continue;
+                }
+                let s = o - a;
+                let u = s.dot(h) / det;
+                let q = s.cross(e1);
+                let v = d.dot(q) / det;
+                let t = e2.dot(q) / det;
+                if u < 0.0 || v < 0.0 || u + v > 1.0 || t <= 0.0 {
+                    continue;
+                }
+                if best.is_none_or(|(bt, _)| t > bt) {
+                    best = Some((t, det > 0.0 || f.is_two_sided()));
+                }
+            }
+        }
+        best
+    }
+
+    /// A warning, before any work, when the scene looks like a closed room modelled with
+    /// its normals pointing out (Blender's default cube scaled up): every one of the 26
+    /// probe rays of [`Scene::interior_camera`] from the centre of the bounds meets some
+    /// face (the scene is closed around that point), and the outermost face met, the
+    /// room's shell, shows its back to at least half of them. Surfaces emit and receive
+    /// only on their front, so such a room sees nothing from inside. `None` otherwise
+    /// (an open scene, a room wound inward, a two-sided shell, an object seen from
+    /// outside with the room around it).
+    pub fn inside_out_warning(&self) -> Option<String> {
+        let (lo, hi) = self.bounds();
+        if !(lo.is_finite() && hi.is_finite()) {
+            return None;
+        }
+        let c = (lo + hi) * 0.5;
+        let mut backs = 0;
+        let mut probes = 0;
+        for x in -1..=1 {
+            for y in -1..=1 {
+                for z in -1..=1 {
+                    if (x, y, z) == (0, 0, 0) {
+                        continue;
+                    }
+                    let d = (DVec3::new(x as f64, y as f64, z as f64) + TILT).normalize();
+                    let (_, front) = self.last_hit(c, d)?;
+                    probes += 1;
+                    if !front {
+                        backs += 1;
+                    }
+                }
+            }
+        }
+        (2 * backs >= probes).then(|| {
+            format!(
+                "`{}` looks like a closed room whose faces point out of it: {backs} of \
+                 {probes} rays from the centre of its bounds leave through the back of its \
+                 outermost faces. Faces emit and receive only on the side their \
+                 counter-clockwise winding faces, so from inside nothing is seen: bake with \
+                 --two-sided (every face both ways; or `#@two-sided` in a material of the \
+                 MTL), or flip the normals (Blender: Mesh > Normals > Flip, then export \
+                 again)",
+                self.name
+            )
+        })
+    }
+
+    /// Makes faces two-sided: every face whose material is two-sided (MTL `#@two-sided`),
+    /// or every face when `all`, gets a twin appended to [`Scene::faces`]: the same
+    /// corners and texture coordinates wound the other way (corner 0 first), the same
+    /// material, object and line, marked [`Face::back`]. The two sides are separate
+    /// surfaces: each emits its material's `Ke`, reflects its `Kd` and receives only on
+    /// its own side, so form factors, solvers and outputs need nothing else. Faces that
+    /// already have a twin are left alone (calling this twice changes nothing). Returns
+    /// the number of twins added.
+    pub fn make_two_sided(&mut self, all: bool) -> usize {
+        let n = self.faces.len();
+        let mut added = 0;
+        for k in 0..n {
+            let f = self.faces[k];
+            if f.is_two_sided() || !(all || self.materials[f.material as usize].two_sided) {
+                continue;
+            }
+            let rev = |a: [u32; 4]| {
+                if f.len() == 3 {
+                    [a[0], a[2], a[1], Face::NONE]
+                } else {
+                    [a[0], a[3], a[2], a[1]]
+                }
+            };
+            let twin = self.faces.len() as u32;
+            self.faces.push(Face {
+                corners: rev(f.corners),
+                uv: rev(f.uv),
+                twin: k as u32,
+                back: true,
+                ..f
+            });
+            self.faces[k].twin = twin;
+            added += 1;
+        }
+        added
     }
 
     /// Errors unless some face has an emitting material.
@@ -420,6 +572,7 @@ impl Scene {
             rho,
             emit,
             thermal: self.materials[k].thermal,
+            two_sided: self.materials[k].two_sided,
         };
         m.validate().map_err(|msg| Error::Material {
             path: self.source.clone().into(),

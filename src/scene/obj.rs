@@ -29,7 +29,7 @@ use std::collections::HashMap;
 use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
-use glam::{DVec3, Vec3};
+use glam::{DVec2, DVec3, Vec3};
 
 use super::polygon::{self, newell};
 use super::{Boundary, Camera, Face, Material, Scene, Thermal, Units};
@@ -72,6 +72,11 @@ struct Scan {
     camera: Option<Camera>,
     /// The `#@units` line's unit, and its line.
     units: Option<(Units, usize)>,
+    /// Texture coordinates, from the `vt` lines.
+    uvs: Vec<DVec2>,
+    /// For each face, its corners' texture coordinates (indices into `uvs`), when every
+    /// corner gives one (tobj fills a missing one with the previous corner's).
+    face_uv: Vec<Option<Vec<u32>>>,
 }
 
 /// Parses OBJ text. `path` names the source in messages; `mtl` resolves a `mtllib` name
@@ -135,6 +140,7 @@ pub fn parse(
         source: path.display().to_string(),
         positions: Vec::new(),
         faces: Vec::new(),
+        uvs: scan.uvs.clone(),
         materials,
         objects: scan.objects.clone(),
         units: scan.units.map(|(u, _)| u),
@@ -169,6 +175,7 @@ pub fn parse(
                 .collect();
             start += arity;
             let line = scan.face_lines.get(face_no).copied().unwrap_or(0);
+            let uv = scan.face_uv.get(face_no).cloned().flatten();
             let used = scan.face_usemtl.get(face_no).copied().flatten();
             let object = scan.face_object.get(face_no).copied().unwrap_or(0);
             face_no += 1;
@@ -180,6 +187,7 @@ pub fn parse(
                         rho: [DEFAULT_RHO; 3],
                         emit: [0.0; 3],
                         thermal: None,
+                        two_sided: false,
                     });
                     scene.warnings.push(format!(
                         "faces without a material get a grey default with rho = {DEFAULT_RHO}"
@@ -187,10 +195,19 @@ pub fn parse(
                     (scene.materials.len() - 1) as u32
                 }),
             };
-            add_polygon(&mut scene, path, &idx, material, object, line)?;
+            add_polygon(
+                &mut scene,
+                path,
+                &idx,
+                uv.as_deref(),
+                material,
+                object,
+                line,
+            )?;
         }
     }
     drop_unused_objects(&mut scene);
+    scene.make_two_sided(false);
     if scene.faces.is_empty() {
         return Err(Error::Scene {
             scene: scene.source.clone(),
@@ -290,6 +307,8 @@ fn scan_lines(scene_name: &str, path: &Path, text: &str) -> Result<Scan> {
         face_object: Vec::new(),
         camera: None,
         units: None,
+        uvs: Vec::new(),
+        face_uv: Vec::new(),
     };
     let mut object: Option<u32> = None;
     let mut n_vertices = 0usize;
@@ -304,6 +323,12 @@ fn scan_lines(scene_name: &str, path: &Path, text: &str) -> Result<Scan> {
                 let v = parse_floats(path, line, "v", rest, 3)?;
                 check_f32(path, line, "v", &v)?;
                 n_vertices += 1;
+            }
+            "vt" => {
+                // `vt u v [w]` (tobj needs both u and v; w, for 3D textures, is not used).
+                let t = parse_floats(path, line, "vt", rest, 2)?;
+                check_f32(path, line, "vt", &t)?;
+                scan.uvs.push(DVec2::new(t[0], t[1]));
             }
             "f" => {
                 if rest.len() < 3 {
@@ -330,6 +355,28 @@ fn scan_lines(scene_name: &str, path: &Path, text: &str) -> Result<Scan> {
                         });
                     }
                 }
+                let n_uvs = scan.uvs.len();
+                let mut uv = Vec::with_capacity(rest.len());
+                for w in rest {
+                    let Some(t) = w.split('/').nth(1).filter(|t| !t.is_empty()) else {
+                        continue;
+                    };
+                    let k = match t.parse::<i64>() {
+                        Ok(i) if i > 0 && (i as usize) <= n_uvs => Some(i as usize - 1),
+                        Ok(i) if i < 0 && (-i as usize) <= n_uvs => Some(n_uvs - (-i as usize)),
+                        _ => None,
+                    };
+                    let k = k.ok_or_else(|| Error::Parse {
+                        path: path.to_path_buf(),
+                        line: Some(line),
+                        msg: format!(
+                            "face corner `{w}`: `{t}` is not a texture coordinate (`vt`) \
+                             index in 1..={n_uvs}"
+                        ),
+                    })?;
+                    uv.push(k as u32);
+                }
+                scan.face_uv.push((uv.len() == rest.len()).then_some(uv));
                 scan.face_lines.push(line);
                 scan.face_usemtl.push(scan.usemtl.len().checked_sub(1));
                 let o = *object.get_or_insert_with(|| object_index(&mut scan.objects, scene_name));
@@ -514,6 +561,7 @@ pub fn parse_mtl_warning(path: &Path, text: &str) -> Result<(Vec<Material>, Vec<
                         rho: [0.0; 3],
                         emit: [0.0; 3],
                         thermal: None,
+                        two_sided: false,
                     },
                     line,
                 ));
@@ -542,6 +590,27 @@ pub fn parse_mtl_warning(path: &Path, text: &str) -> Result<(Vec<Material>, Vec<
                     material: m.name.clone(),
                     msg,
                 })?;
+            }
+            "#@two-sided" => {
+                let Some((m, _)) = out.last_mut() else {
+                    return Err(Error::Parse {
+                        path: path.to_path_buf(),
+                        line: Some(line),
+                        msg: "`#@two-sided` before any `newmtl`".into(),
+                    });
+                };
+                if !rest.is_empty() {
+                    return Err(Error::Parse {
+                        path: path.to_path_buf(),
+                        line: Some(line),
+                        msg: format!(
+                            "`#@two-sided` takes no value, found `{}` (the line alone makes \
+                             the material's faces two-sided)",
+                            rest.join(" ")
+                        ),
+                    });
+                }
+                m.two_sided = true;
             }
             "#@thermal" => {
                 let Some((m, _)) = out.last_mut() else {
@@ -638,21 +707,26 @@ fn run_tobj(path: &Path, text: &str) -> Result<Vec<tobj::Model>> {
 /// with a warning, triangles and planar convex quads kept, anything else meshed by
 /// [`polygon::mesh`] (a non-planar one with a warning naming the file and line; one that
 /// is not simple refused with an error naming them).
+#[allow(clippy::too_many_arguments)]
 fn add_polygon(
     scene: &mut Scene,
     path: &Path,
     idx: &[u32],
+    uv: Option<&[u32]>,
     material: u32,
     object: u32,
     line: usize,
 ) -> Result<()> {
     let mut corners: Vec<u32> = Vec::with_capacity(idx.len());
-    for &i in idx {
+    // Texture coordinates of the kept corners (`Face::NONE` without).
+    let mut corner_uv: Vec<u32> = Vec::with_capacity(idx.len());
+    for (k, &i) in idx.iter().enumerate() {
         let same = |c: Option<&u32>| {
             c.is_some_and(|&c| c == i || scene.positions[c as usize] == scene.positions[i as usize])
         };
         if !same(corners.last()) {
             corners.push(i);
+            corner_uv.push(uv.and_then(|u| u.get(k).copied()).unwrap_or(Face::NONE));
         }
     }
     while corners.len() > 1
@@ -660,6 +734,7 @@ fn add_polygon(
             == scene.positions[*corners.last().unwrap_or(&0) as usize]
     {
         corners.pop();
+        corner_uv.pop();
     }
     let pts: Vec<DVec3> = corners
         .iter()
@@ -698,17 +773,21 @@ fn add_polygon(
         let (a, b, c) = (pts[k], pts[(k + 1) % pts.len()], pts[(k + 2) % pts.len()]);
         (b - a).cross(c - b).dot(unit) > 0.0
     });
-    let push = |scene: &mut Scene, c: [u32; 4]| {
+    let has_uv = uv.is_some();
+    let push = |scene: &mut Scene, c: [u32; 4], t: [u32; 4]| {
         scene.faces.push(Face {
-            corners: c,
-            material,
-            object,
-            line: line as u32,
+            uv: if has_uv { t } else { [Face::NONE; 4] },
+            ..Face::new(c, material, object, line as u32)
         });
     };
+    let (c, t) = (&corners, &corner_uv);
     match corners.len() {
-        3 => push(scene, [corners[0], corners[1], corners[2], Face::NONE]),
-        4 if planar && convex => push(scene, [corners[0], corners[1], corners[2], corners[3]]),
+        3 => push(
+            scene,
+            [c[0], c[1], c[2], Face::NONE],
+            [t[0], t[1], t[2], Face::NONE],
+        ),
+        4 if planar && convex => push(scene, [c[0], c[1], c[2], c[3]], [t[0], t[1], t[2], t[3]]),
         len => {
             let meshed = polygon::mesh(&pts).map_err(|msg| Error::Parse {
                 path: path.to_path_buf(),
@@ -725,15 +804,33 @@ fn add_polygon(
             }
             let base = scene.positions.len() as u32;
             scene.positions.extend_from_slice(&meshed.extra);
+            // Texture coordinates of the added points, from the corners' (only when the
+            // face has them: the weights of a large polygon's points cost n each).
+            let uv_base = scene.uvs.len() as u32;
+            if has_uv {
+                for k in 0..meshed.extra.len() {
+                    let uv = meshed
+                        .corner_weights(k)
+                        .into_iter()
+                        .map(|(c, w)| scene.uvs[corner_uv[c] as usize] * w)
+                        .sum();
+                    scene.uvs.push(uv);
+                }
+            }
             let index = |k: usize| {
                 if k < len {
-                    corners[k]
+                    (corners[k], corner_uv[k])
                 } else {
-                    base + (k - len) as u32
+                    (base + (k - len) as u32, uv_base + (k - len) as u32)
                 }
             };
-            for t in &meshed.triangles {
-                push(scene, [index(t[0]), index(t[1]), index(t[2]), Face::NONE]);
+            for tri in &meshed.triangles {
+                let [a, b, c] = tri.map(index);
+                push(
+                    scene,
+                    [a.0, b.0, c.0, Face::NONE],
+                    [a.1, b.1, c.1, Face::NONE],
+                );
             }
         }
     }
@@ -846,6 +943,48 @@ mod tests {
                 .to_string();
             assert!(e.contains(want), "{e}");
         }
+    }
+
+    #[test]
+    fn texture_coordinates_are_kept_and_bad_ones_name_their_line() {
+        let obj = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0.5 0 0\n\
+                   f 1/1 2/2 3/3 4/-1\nf 1/1 2 3/3\nf 1 2 3\n";
+        let s = parse("t", Path::new("t.obj"), obj, &no_mtl).unwrap();
+        assert_eq!(s.faces.len(), 3);
+        assert!(s.faces[0].has_uv());
+        assert_eq!(s.uvs[s.faces[0].uv[3] as usize], DVec2::new(0.5, 0.0));
+        // A corner without `vt` (tobj would give it the previous corner's): no UVs.
+        assert!(!s.faces[1].has_uv() && !s.faces[2].has_uv());
+        for (text, want) in [
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/2 3/1\n",
+                "t.obj:5: face corner `2/2`",
+            ),
+            (
+                "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/-2 2/1 3/1\n",
+                "t.obj:5: face corner `1/-2`",
+            ),
+            (
+                "v 0 0 0\nvt nan 0\n",
+                "t.obj:2: `vt` has a non-finite value",
+            ),
+            (
+                "v 0 0 0\nvt 0.5\n",
+                "t.obj:2: `vt` needs 2 numbers, found 1",
+            ),
+        ] {
+            let e = parse("t", Path::new("t.obj"), text, &no_mtl)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(want), "{e}");
+        }
+        let e = parse_mtl(Path::new("m.mtl"), "#@two-sided\nnewmtl a\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("m.mtl:1") && e.contains("before any `newmtl`"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -68,6 +68,79 @@ pub struct Meshed {
     /// Set when the polygon is not planar: the largest distance of a corner from the
     /// best-fit plane, relative to the polygon's size.
     pub non_planar: Option<f64>,
+    /// Where each point of `extra` lies, for [`Meshed::corner_weights`].
+    pub extra_at: Vec<Place>,
+    /// The corners in the best-fit plane's coordinates (scaled to the polygon's size), as
+    /// the triangulation saw them.
+    pub plane: Vec<[f64; 2]>,
+}
+
+/// Where a point added by the refinement lies in its polygon.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Place {
+    /// On the edge from corner `k` to corner `k + 1` (cyclically), at parameter `t`.
+    Edge(usize, f64),
+    /// Inside, at these coordinates of [`Meshed::plane`].
+    Inside([f64; 2]),
+}
+
+impl Meshed {
+    /// Weights of the polygon's corners that make the added point `k` (`extra[k]`):
+    /// `(corner, weight)` pairs summing to 1, by which any value given at the corners (the
+    /// OBJ's texture coordinates) is carried to the point. On an edge, the two ends
+    /// linearly; inside, Floater's mean value coordinates ("Mean value coordinates",
+    /// *CAGD* 20, 2003; for non-convex polygons Hormann and Floater, "Mean value
+    /// coordinates for arbitrary planar polygons", *ACM TOG* 25, 2006), in the plane the
+    /// polygon was triangulated in. Both reproduce a value that is an affine function of
+    /// the position exactly (texture coordinates projected onto a plane, as Blender's UV
+    /// projections make them), and agree with the linear interpolation along each edge,
+    /// so the texture is continuous across the polygon's triangles and its neighbours.
+    pub fn corner_weights(&self, k: usize) -> Vec<(usize, f64)> {
+        let n = self.plane.len();
+        match self.extra_at[k] {
+            Place::Edge(e, t) => vec![(e, 1.0 - t), ((e + 1) % n, t)],
+            Place::Inside(x) => mean_value_weights(&self.plane, x),
+        }
+    }
+}
+
+/// Mean value coordinates of `x` with respect to the polygon `q` (see
+/// [`Meshed::corner_weights`]): `w_i = (tan(a_(i-1)/2) + tan(a_i/2)) / |q_i - x|`, with
+/// `a_i` the signed angle at `x` from `q_i` to `q_(i+1)`, normalised to sum 1. A point on
+/// a corner gets that corner alone, one on an edge its two ends.
+pub fn mean_value_weights(q: &[[f64; 2]], x: [f64; 2]) -> Vec<(usize, f64)> {
+    let n = q.len();
+    let d: Vec<[f64; 2]> = q.iter().map(|c| [c[0] - x[0], c[1] - x[1]]).collect();
+    let r: Vec<f64> = d.iter().map(|v| v[0].hypot(v[1])).collect();
+    let scale = r.iter().copied().fold(0.0, f64::max);
+    if let Some(i) = (0..n).find(|&i| r[i] <= 1e-14 * scale) {
+        return vec![(i, 1.0)];
+    }
+    // tan(a_i / 2) = (r_i r_(i+1) - d_i . d_(i+1)) / (d_i x d_(i+1)).
+    let mut tan_half = vec![0.0; n];
+    for i in 0..n {
+        let j = (i + 1) % n;
+        let cross = d[i][0] * d[j][1] - d[i][1] * d[j][0];
+        let dot = d[i][0] * d[j][0] + d[i][1] * d[j][1];
+        if cross.abs() <= 1e-14 * r[i] * r[j] {
+            if dot < 0.0 {
+                // On the edge from q_i to q_(i+1).
+                let t = r[i] / (r[i] + r[j]);
+                return vec![(i, 1.0 - t), (j, t)];
+            }
+            continue; // angle 0: the edge is seen end-on, tan = 0
+        }
+        tan_half[i] = (r[i] * r[j] - dot) / cross;
+    }
+    let w: Vec<f64> = (0..n)
+        .map(|i| (tan_half[(i + n - 1) % n] + tan_half[i]) / r[i])
+        .collect();
+    let sum: f64 = w.iter().sum();
+    w.into_iter()
+        .enumerate()
+        .filter(|&(_, x)| x != 0.0)
+        .map(|(i, x)| (i, x / sum))
+        .collect()
 }
 
 /// Newell normal of a polygon: its direction is the polygon's normal (counter-clockwise
@@ -318,10 +391,11 @@ pub fn mesh(p: &[DVec3]) -> Result<Meshed, String> {
     // 3D positions of the added points: on the polygon's edge when on its boundary (a
     // vertex with a constraint edge), else on the best-fit plane.
     let mut extra = Vec::with_capacity(cdt.num_vertices() - n);
+    let mut extra_at = Vec::with_capacity(cdt.num_vertices() - n);
     for v in cdt.vertices().skip(n) {
         let c = [v.position().x, v.position().y];
         let on_boundary = v.out_edges().any(|e| e.is_constraint_edge());
-        let point = if on_boundary {
+        let (point, at) = if on_boundary {
             let (k, t) = (0..n)
                 .map(|k| {
                     let (d, t) = point_segment(c, q[k], q[(k + 1) % n]);
@@ -330,11 +404,12 @@ pub fn mesh(p: &[DVec3]) -> Result<Meshed, String> {
                 .min_by(|a, b| a.0.total_cmp(&b.0))
                 .map(|(_, k, t)| (k, t))
                 .unwrap_or((0, 0.0));
-            p[k].lerp(p[(k + 1) % n], t)
+            (p[k].lerp(p[(k + 1) % n], t), Place::Edge(k, t))
         } else {
-            centre + (e1 * c[0] + e2 * c[1]) * size
+            (centre + (e1 * c[0] + e2 * c[1]) * size, Place::Inside(c))
         };
         extra.push(point);
+        extra_at.push(at);
     }
     let triangles = inside_faces(&cdt)
         .into_iter()
@@ -344,6 +419,8 @@ pub fn mesh(p: &[DVec3]) -> Result<Meshed, String> {
         extra,
         triangles,
         non_planar: (!planar).then_some(deviation),
+        extra_at,
+        plane: q,
     })
 }
 
@@ -425,6 +502,30 @@ mod tests {
             assert!(a >= MIN_ANGLE_DEG - 1e-6, "angle {a}");
         }
         assert!(m.triangles.len() < 4 * n, "{} triangles", m.triangles.len());
+    }
+
+    #[test]
+    fn mean_value_weights_reproduce_linear_values_in_a_concave_polygon() {
+        // An L (concave) and points inside it, on an edge and at a corner: the weights sum
+        // to 1 and carry any affine function of the corners to the point exactly.
+        let q = [[4., 0.], [4., 1.], [1., 1.], [1., 4.], [0., 4.], [0., 0.]];
+        let f = |p: [f64; 2]| 0.3 + 1.7 * p[0] - 0.6 * p[1];
+        for x in [
+            [0.5, 0.5],
+            [3.5, 0.5],
+            [0.5, 3.5],
+            [0.9, 0.9],
+            [2.0, 1.0],
+            [4.0, 1.0],
+        ] {
+            let w = mean_value_weights(&q, x);
+            let sum: f64 = w.iter().map(|&(_, v)| v).sum();
+            let value: f64 = w.iter().map(|&(i, v)| v * f(q[i])).sum();
+            assert!((sum - 1.0).abs() < 1e-12, "{x:?}: {sum}");
+            assert!((value - f(x)).abs() < 1e-12, "{x:?}: {value} vs {}", f(x));
+        }
+        // On the edge (1, 1)-(1, 4), only its two ends.
+        assert_eq!(mean_value_weights(&q, [1.0, 2.5]).len(), 2);
     }
 
     #[test]

@@ -98,12 +98,12 @@ fn scene(name: &str, quads: &[(DVec3, DVec3, DVec3)]) -> Scene {
     for &(o, e1, e2) in quads {
         let k = positions.len() as u32;
         positions.extend([o, o + e1, o + e1 + e2, o + e2]);
-        faces.push(Face {
-            corners: [k, k + 1, k + 2, k + 3],
-            material: 0,
-            object: faces.len() as u32,
-            line: 0,
-        });
+        faces.push(Face::new(
+            [k, k + 1, k + 2, k + 3],
+            0,
+            faces.len() as u32,
+            0,
+        ));
     }
     let faces_len = faces.len();
     Scene {
@@ -111,11 +111,13 @@ fn scene(name: &str, quads: &[(DVec3, DVec3, DVec3)]) -> Scene {
         source: format!("study:{name}"),
         positions,
         faces,
+        uvs: Vec::new(),
         materials: vec![Material {
             name: "white".into(),
             rho: [0.5; 3],
             emit: [1.0; 3],
             thermal: None,
+            two_sided: false,
         }],
         objects: (0..faces_len).map(|k| format!("quad{k}")).collect(),
         units: None,

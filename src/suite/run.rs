@@ -71,6 +71,7 @@ pub fn run(
             // The scorer reads Matrix Market, as it does every program's answers.
             store::Format::Mtx,
             None,
+            false,
             &Quiet,
         )?;
         let d = Done {

@@ -197,6 +197,11 @@ pub struct Visibility {
     /// Patch of each triangle, with bit 31 set when the triangle's winding normal points
     /// to the patch's front side ([`Visibility::first_front_hits_soa`]).
     tri_front: Vec<u32>,
+    /// For each triangle, the patch a ray meeting its back reaches: the twin of its patch
+    /// (the other side of a two-sided face, lying on it) or [`NO_HIT`].
+    tri_back: Vec<u32>,
+    /// Patch normals, kept only when some patch has a twin (for [`Visibility::first_hit`]).
+    twin_normal: Vec<DVec3>,
     offsets: Offsets,
 }
 
@@ -227,10 +232,24 @@ impl Visibility {
                 p | if along { ALONG } else { 0 }
             })
             .collect();
+        // Front and back of a two-sided face lie on each other: a ray meets both at one
+        // distance, and Embree reports either; from the back of one it has met the front
+        // of the other.
+        let tri_back = patches
+            .tri_patch
+            .iter()
+            .map(|&p| patches.twin_of(p as usize).map_or(NO_HIT, |t| t as u32))
+            .collect();
         Ok(Visibility {
             scene,
             tri_patch: patches.tri_patch.clone(),
             tri_front,
+            tri_back,
+            twin_normal: if patches.twin.is_empty() {
+                Vec::new()
+            } else {
+                patches.normal.clone()
+            },
             offsets: Offsets::of(patches),
         })
     }
@@ -364,7 +383,7 @@ impl Visibility {
                             *v = if a == (t & ALONG != 0) {
                                 t & !ALONG
                             } else {
-                                NO_HIT
+                                self.tri_back[*v as usize]
                             };
                         }
                     }
@@ -373,15 +392,22 @@ impl Visibility {
         )
     }
 
-    /// First patch hit by the ray leaving `x` (normal `n_x`) in unit direction `dir`.
+    /// First patch hit by the ray leaving `x` (normal `n_x`) in unit direction `dir`: of
+    /// the two sides of a two-sided face, the one facing the ray.
     #[inline]
     pub fn first_hit(&self, x: DVec3, n_x: DVec3, dir: DVec3) -> Option<Hit> {
         let org = self.first_hit_origin(x, n_x, dir);
         self.scene
             .intersect1(org, dir.as_vec3(), 0.0, f32::INFINITY)
-            .map(|h| Hit {
-                patch: self.tri_patch[h.prim as usize],
-                t: h.t,
+            .map(|h| {
+                let k = h.prim as usize;
+                let mut patch = self.tri_patch[k];
+                let twin = self.tri_back[k];
+                if twin != NO_HIT && self.twin_normal[patch as usize].dot(dir) > 0.0 {
+                    // The ray meets the back of `patch`: the front of its twin.
+                    patch = twin;
+                }
+                Hit { patch, t: h.t }
             })
     }
 }
