@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use glam::DVec3;
 use radiosity::analytic::perpendicular_rectangles;
-use radiosity::formfactor::area::kernel;
+use radiosity::formfactor::kernel;
 use radiosity::matrix::FormFactors;
 use radiosity::mesh::{PatchSet, Resolution};
 use radiosity::pipeline::{self, EstimatorChoice, Quiet};

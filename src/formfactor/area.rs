@@ -540,17 +540,3 @@ impl Scratch {
         self.ok.resize(len, false);
     }
 }
-
-/// The unoccluded point-to-point kernel `cos θ_x cos θ_y / (π r²)`, or `None` when the
-/// points face away from each other (no ray needed).
-#[inline]
-pub fn kernel(x: DVec3, n_x: DVec3, y: DVec3, n_y: DVec3) -> Option<f64> {
-    let d = y - x;
-    let r2 = d.length_squared();
-    let cx = n_x.dot(d);
-    let cy = -n_y.dot(d);
-    if cx <= 0.0 || cy <= 0.0 || r2 <= 0.0 {
-        return None;
-    }
-    Some(cx * cy / (std::f64::consts::PI * r2 * r2))
-}

@@ -80,6 +80,20 @@ impl EstimatorKind {
     }
 }
 
+/// The unoccluded point-to-point kernel `cos θ_x cos θ_y / (π r²)`, or `None` when the
+/// points face away from each other (no ray needed).
+#[inline]
+pub fn kernel(x: glam::DVec3, n_x: glam::DVec3, y: glam::DVec3, n_y: glam::DVec3) -> Option<f64> {
+    let d = y - x;
+    let r2 = d.length_squared();
+    let cx = n_x.dot(d);
+    let cy = -n_y.dot(d);
+    if cx <= 0.0 || cy <= 0.0 || r2 <= 0.0 {
+        return None;
+    }
+    Some(cx * cy / (std::f64::consts::PI * r2 * r2))
+}
+
 /// Buffers an estimator works in, owned by the row driver: one per worker, lent to every
 /// row it computes and kept between rows (no thread-local state in the estimators).
 #[derive(Default)]

@@ -62,9 +62,8 @@ use std::sync::{Arc, Mutex};
 
 use glam::DVec3;
 
-use super::area::kernel;
 use super::exact::{self, Emitter, Piece, Receiver};
-use super::{Context, Entry, Estimator, Row, Scratch as Buffers};
+use super::{kernel, Context, Entry, Estimator, Row, Scratch as Buffers};
 use crate::mesh::PatchSet;
 use crate::sampling::{jittered, Pcg32};
 use crate::visibility::{Rays, Segments, Tracer, SEGMENT_TFAR};
