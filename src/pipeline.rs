@@ -565,6 +565,10 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         cfg.max_memory,
     )?;
     let patches = timer.run("mesh", 0, || PatchSet::build(&scene, cfg.resolution))?;
+    if cfg.method == Method::Direct {
+        // Known now, not only after the form factors.
+        solve::direct::check_size(patches.len())?;
+    }
     let (ff, embree, repair_report) = factors_of(
         &patches,
         cfg.factors.as_deref(),

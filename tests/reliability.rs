@@ -98,6 +98,11 @@ fn runs_too_large_are_refused_before_any_work() {
         &["patches, more than the 100000000 a run accepts"],
     );
     refused(
+        &["bake", "--patches", "5000", "--solver", "direct", "-o", o],
+        &["limited to 4096 patches", "--solver cg"],
+    );
+    assert!(!std::path::Path::new(o).exists());
+    refused(
         &["bake", "--size", "8192x8192", "--max-memory", "1G", "-o", o],
         &["--size"],
     );
@@ -337,4 +342,37 @@ fn the_preview_camera_is_set_on_the_command_line_and_checked() {
         refused(&["bake", "cornell", "--camera", camera, "-o", out], &[want]);
     }
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The dense solve's limit is known from the patch count: a bake over it is refused after
+/// meshing, before any form factor (it was refused only after them: 2 to 3 minutes of
+/// rays lost on the Cornell box at 5000 patches), and writes nothing.
+#[test]
+fn a_direct_solve_over_its_limit_is_refused_before_any_form_factor() {
+    use radiosity::mesh::Resolution;
+    use radiosity::pipeline::{self, BakeConfig, Observer};
+    use radiosity::solve::Method;
+    use std::sync::Mutex;
+
+    #[derive(Default)]
+    struct Stages(Mutex<Vec<String>>);
+    impl Observer for Stages {
+        fn begin(&self, stage: &str, _total: u64) {
+            self.0.lock().unwrap().push(stage.to_string());
+        }
+    }
+    let dir = temp_dir("direct");
+    let cfg = BakeConfig {
+        out_dir: dir.join("out"),
+        resolution: Resolution::Patches(5000),
+        method: Method::Direct,
+        ..BakeConfig::default()
+    };
+    let log = Stages::default();
+    let e = pipeline::bake(&cfg, &log).unwrap_err().to_string();
+    assert!(e.contains("limited to 4096 patches"), "{e}");
+    let stages = log.0.into_inner().unwrap();
+    assert!(stages.iter().any(|s| s == "mesh"), "{stages:?}");
+    assert!(!stages.iter().any(|s| s == "form factors"), "{stages:?}");
+    assert!(!dir.join("out").exists());
 }

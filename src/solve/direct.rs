@@ -41,6 +41,23 @@ pub(crate) const NAME: &str = "direct";
 /// Largest number of patches the dense direct solve accepts (see the [module docs](self)).
 pub const DIRECT_MAX_PATCHES: usize = 4096;
 
+/// Refuses a system of `n` patches above [`DIRECT_MAX_PATCHES`], saying what it would cost
+/// and what to use instead: called by the solve, and by the pipeline as soon as the patch
+/// count is known (before any form factor).
+pub fn check_size(n: usize) -> Result<()> {
+    if n > DIRECT_MAX_PATCHES {
+        return Err(Error::Config(format!(
+            "the direct solve is limited to {DIRECT_MAX_PATCHES} patches ({} per dense \
+             factor); {n} patches would need {} per factor and about {:.1e} flops per \
+             channel: use --solver cg or gauss-seidel, or fewer patches",
+            super::mib(factor_bytes(DIRECT_MAX_PATCHES)),
+            super::mib(factor_bytes(n)),
+            2.0 / 3.0 * (n as f64).powi(3)
+        )));
+    }
+    Ok(())
+}
+
 /// Steps of iterative refinement after the first solve, at most.
 pub const REFINEMENT_STEPS: usize = 3;
 
@@ -174,16 +191,7 @@ impl Solver for Direct {
             notes,
         } = Prologue::new(sys, opts)?;
         let n = sys.len();
-        if n > DIRECT_MAX_PATCHES {
-            return Err(Error::Config(format!(
-                "the direct solve is limited to {DIRECT_MAX_PATCHES} patches ({} per dense \
-                 factor); {n} patches would need {} per factor and about {:.1e} flops per \
-                 channel: use --solver cg or gauss-seidel, or fewer patches",
-                super::mib(factor_bytes(DIRECT_MAX_PATCHES)),
-                super::mib(factor_bytes(n)),
-                2.0 / 3.0 * (n as f64).powi(3)
-            )));
-        }
+        check_size(n)?;
         let factors = channel_groups(sys.rho)
             .into_iter()
             .map(|(c, members)| factorise(sys, &rows, c, members))
