@@ -7,6 +7,8 @@ mod geometry;
 mod gltf;
 mod hierarchy;
 mod invalid;
+#[cfg(feature = "mpi")]
+mod mpi;
 mod objects;
 mod polygons;
 mod reliability;
