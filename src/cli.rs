@@ -9,6 +9,7 @@ use anyhow::{bail, Context as _, Result};
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use radiosity::cluster::{Cluster, Single};
 use radiosity::formfactor::EstimatorKind;
 use radiosity::mesh::Resolution;
 use radiosity::output::Exposure;
@@ -292,6 +293,9 @@ struct HierarchyArgs {
     #[arg(long, default_value_t = 0.01)]
     link_accuracy: f64,
 }
+/// Set once the threads are set for the whole run (by `radiosity::mpi::World::init`).
+static THREADS_SET: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
 /// Caps of count arguments (a larger value is a typo or a memory bomb, not a setting).
 const MAX_REPLICATES: usize = 1024;
 const MAX_RAYS: usize = 256;
@@ -380,6 +384,9 @@ impl FactorArgs {
     }
 
     fn init_threads(&self) -> Result<()> {
+        if THREADS_SET.load(std::sync::atomic::Ordering::Relaxed) {
+            return Ok(());
+        }
         if let Some(n) = self.threads {
             if !(1..=MAX_THREADS).contains(&n) {
                 bail!("--threads must be between 1 and {MAX_THREADS}, got {n}");
@@ -694,7 +701,7 @@ fn check_meaningless(
     Ok(())
 }
 
-fn bake(args: &BakeArgs) -> Result<()> {
+fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
     args.est.init_threads()?;
     if !(args.tolerance > 0.0 && args.tolerance < 1.0) {
         bail!("--tolerance must be in (0, 1), got {}", args.tolerance);
@@ -769,9 +776,11 @@ fn bake(args: &BakeArgs) -> Result<()> {
     };
     let bars = Bars {
         bar: Mutex::new(None),
-        tty: std::io::stderr().is_terminal(),
+        tty: std::io::stderr().is_terminal() && cluster.is_root(),
     };
-    let summary = pipeline::bake(&cfg, &bars)?;
+    let Some(summary) = pipeline::distributed::bake_on(&cfg, &bars, cluster)? else {
+        return Ok(());
+    };
     print!("{}", pipeline::format_summary(&summary));
     if !summary.solve.converged {
         eprintln!(
@@ -902,18 +911,109 @@ fn study_solvers(args: &StudySolversArgs) -> Result<()> {
     Ok(())
 }
 
-/// Parses the command line and runs it.
+/// Prints `e` and its chain of causes on stderr, each line after `prefix`.
+pub fn print_error(e: &anyhow::Error, prefix: &str) {
+    let mut said = e.to_string();
+    eprintln!("error: {prefix}{said}");
+    // A cause whose text the message already carries (an I/O error named in
+    // `path: error`) is not printed again.
+    let mut source = e.source();
+    while let Some(s) = source {
+        let text = s.to_string();
+        if !said.contains(&text) {
+            eprintln!("  caused by: {text}");
+            said.push_str(&text);
+        }
+        source = s.source();
+    }
+}
+
+/// Parses the command line and runs it: as one process, or, when `mpirun` started it
+/// (and the `mpi` feature is built), as one rank of several.
 pub fn run() -> Result<()> {
     use clap::{CommandFactory, FromArgMatches};
     let matches = Cli::command().get_matches();
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    #[cfg(feature = "mpi")]
+    if radiosity::mpi::launched() {
+        return run_mpi(&cli, &matches);
+    }
+    #[cfg(not(feature = "mpi"))]
+    if let Some(k) = radiosity::cluster::launched_size().filter(|&k| k > 1) {
+        bail!(
+            "started as one of {k} MPI processes, but this binary was built without MPI: \
+             each would do the whole run and write the same folder. Build it with \
+             `cargo build --release --features mpi` (or `./dev mpirun NP ...`), or run it \
+             without mpirun"
+        );
+    }
+    dispatch(&cli, &matches, &Single)
+}
+
+/// One rank of a run under `mpirun`: MPI and the threads are set up first
+/// ([`radiosity::mpi::World::init`]); `factors` and `bake` share their work between the
+/// ranks, other commands run only with one rank. On a failure with several ranks the
+/// rank prints its error and ends the whole job (`MPI_Abort`): ranks other than 0 wait a
+/// second first, so that an error every rank meets (a bad argument, a missing scene) is
+/// printed once, by rank 0, whose abort ends the others before they print.
+#[cfg(feature = "mpi")]
+fn run_mpi(cli: &Cli, matches: &clap::ArgMatches) -> Result<()> {
+    let threads = match &cli.command {
+        Command::Bake(a) => a.est.threads,
+        Command::Thermal(a) => a.est.threads,
+        Command::Factors(a) => a.factors.threads,
+        _ => None,
+    };
+    if let Some(n) = threads {
+        if !(1..=MAX_THREADS).contains(&n) {
+            bail!("--threads must be between 1 and {MAX_THREADS}, got {n}");
+        }
+    }
+    let world = radiosity::mpi::World::init(threads)?;
+    THREADS_SET.store(true, std::sync::atomic::Ordering::Relaxed);
+    let shared = matches!(cli.command, Command::Bake(_) | Command::Factors(_));
+    let result = if world.size() > 1 && !shared {
+        Err(anyhow::anyhow!(
+            "only `factors` and `bake` run on several ranks; run `{}` as one process \
+             (without mpirun, or with -np 1)",
+            matches.subcommand_name().unwrap_or("this command")
+        ))
+    } else {
+        dispatch(cli, matches, &world)
+    };
+    // Ranks done before rank 0 wait here, without spinning, until it has written.
+    let result = result.and_then(|()| Ok(world.wait_for_all()?));
+    match result {
+        Ok(()) => Ok(()),
+        Err(e) if world.size() == 1 => Err(e),
+        Err(e) => {
+            if world.rank() != 0 {
+                std::thread::sleep(std::time::Duration::from_secs(1));
+            }
+            let prefix = format!("rank {} of {}: ", world.rank(), world.size());
+            let prefix = if e.to_string().starts_with(&prefix) {
+                String::new()
+            } else {
+                prefix
+            };
+            print_error(&e, &prefix);
+            eprintln!(
+                "error: ending every rank of the job (MPI_Abort); no output folder was written"
+            );
+            world.abort(1)
+        }
+    }
+}
+
+/// Runs the parsed command on `cluster` (one process: [`Single`]).
+fn dispatch(cli: &Cli, matches: &clap::ArgMatches, cluster: &dyn Cluster) -> Result<()> {
     match &cli.command {
         Command::Bake(args) => {
             if let Some(("bake", m)) = matches.subcommand() {
                 let hierarchical = args.hier.method == MethodArg::Hierarchical;
                 check_meaningless(args.factors.as_deref(), hierarchical, m)?;
             }
-            bake(args)
+            bake(args, cluster)
         }
         Command::Thermal(args) => {
             if let Some(("thermal", m)) = matches.subcommand() {
@@ -925,20 +1025,22 @@ pub fn run() -> Result<()> {
             args.factors.init_threads()?;
             let bars = Bars {
                 bar: Mutex::new(None),
-                tty: std::io::stderr().is_terminal(),
+                tty: std::io::stderr().is_terminal() && cluster.is_root(),
             };
-            let s = pipeline::factors_within(
-                &args.scene,
-                args.mesh.resolution()?,
-                &args.factors.choice()?,
-                args.factors.seed,
-                &args.output,
-                args.factors.repair,
-                args.format,
-                args.factors.max_memory,
-                args.two_sided,
-                &bars,
-            )?;
+            let job = pipeline::FactorsJob {
+                scene: &args.scene,
+                resolution: args.mesh.resolution()?,
+                estimator: &args.factors.choice()?,
+                seed: args.factors.seed,
+                out_dir: &args.output,
+                repair: args.factors.repair,
+                format: args.format,
+                max_memory: args.factors.max_memory,
+                two_sided: args.two_sided,
+            };
+            let Some(s) = pipeline::factors_on(&job, &bars, cluster)? else {
+                return Ok(());
+            };
             use std::fmt::Write;
             let mut o = String::new();
             let p = &s.provenance;
@@ -968,6 +1070,7 @@ pub fn run() -> Result<()> {
                     s.repair.after.summary()
                 )?;
             }
+            o.push_str(&pipeline::distributed::format_ranks(&s.ranks));
             writeln!(o, "{}", pipeline::format_times(&s.stages, s.peak_memory))?;
             if !p.objects_skipped.is_empty() {
                 writeln!(o, "warning: no object tables: {}", p.objects_skipped)?;

@@ -103,6 +103,17 @@ pub enum Error {
         /// What went wrong.
         msg: String,
     },
+    /// A run of several processes ([`crate::cluster`]) failed on one of them, or between
+    /// them.
+    #[error("rank {rank} of {size}: {msg}")]
+    Cluster {
+        /// The rank that failed.
+        rank: usize,
+        /// How many ranks the run has.
+        size: usize,
+        /// What went wrong.
+        msg: String,
+    },
 }
 
 /// The crate's result type.

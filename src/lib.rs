@@ -20,9 +20,11 @@
 //!
 //! ## No import cycles
 //! The modules form an acyclic graph: a module refers only to modules upstream of it
-//! (`error`, `input`, `budget`, `scene`, `mesh`, `sampling`, `simd`, `visibility`,
+//! (`error`, `cluster`, `input`, `budget`, `scene`, `mesh`, `sampling`, `simd`, `visibility`,
 //! `analytic`, `matrix`, `formfactor`, `hierarchy`, `repair`, `solve`, `thermal`, `output`,
-//! `objects`, `npz`, `store`, `pipeline`, then the consumers `study`, `suite` and `bench`). The test
+//! `objects`, `npz`, `store`, `pipeline`, then the consumers `study`, `suite` and `bench`, and
+//! `mpi`, the MPI implementation of [`cluster::Cluster`], built only with the cargo
+//! feature `mpi`). The test
 //! `tests::module_graph_is_acyclic` at
 //! the bottom of this file checks it: it reads every file under `src/`, takes each
 //! `crate::MODULE` path in the code before the file's `#[cfg(test)]` (comments and doc
@@ -41,12 +43,15 @@
 pub mod analytic;
 pub mod bench;
 pub mod budget;
+pub mod cluster;
 pub mod error;
 pub mod formfactor;
 pub mod hierarchy;
 pub mod input;
 pub mod matrix;
 pub mod mesh;
+#[cfg(feature = "mpi")]
+pub mod mpi;
 pub mod npz;
 pub mod objects;
 pub mod output;

@@ -14,19 +14,7 @@ fn main() -> ExitCode {
     match cli::run() {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            let mut said = e.to_string();
-            eprintln!("error: {said}");
-            // A cause whose text the message already carries (an I/O error named in
-            // `path: error`) is not printed again.
-            let mut source = e.source();
-            while let Some(s) = source {
-                let text = s.to_string();
-                if !said.contains(&text) {
-                    eprintln!("  caused by: {text}");
-                    said.push_str(&text);
-                }
-                source = s.source();
-            }
+            cli::print_error(&e, "");
             ExitCode::FAILURE
         }
     }

@@ -97,19 +97,26 @@ pub struct RowRepair {
 /// `max_i rho_i sum_j |F_ij| <= max rho < 1`, which bounds the spectral radius of
 /// `diag(rho) F` below 1: every solver converges and `B` stays bounded.
 pub fn repair_row_sums(f: &Csr, rho: &[[f64; 3]]) -> Option<(Csr, RowRepair)> {
+    repair_rows_from(f, rho, 0)
+}
+
+/// [`repair_row_sums`] for rows `lo..` of a matrix held as `f` (its row `r` is the
+/// matrix's row `lo + r`; `rho` of every patch): the report names the matrix's rows.
+pub fn repair_rows_from(f: &Csr, rho: &[[f64; 3]], lo: usize) -> Option<(Csr, RowRepair)> {
     let mut rep = RowRepair::default();
     let mut scale = vec![1.0; f.rows()];
-    for (i, row) in f.outer_iterator().enumerate() {
+    for (r, row) in f.outer_iterator().enumerate() {
+        let i = lo + r;
         let sum: f64 = row.data().iter().sum();
-        let r = rho.get(i).map_or(0.0, |r| r[0].max(r[1]).max(r[2]));
-        let gain = r * sum;
+        let rho_i = rho.get(i).map_or(0.0, |r| r[0].max(r[1]).max(r[2]));
+        let gain = rho_i * sum;
         if gain > rep.worst_gain {
             rep.worst_gain = gain;
             rep.worst = (i, sum);
         }
         if gain >= 1.0 && sum > 0.0 {
             rep.rows.push(i);
-            scale[i] = 1.0 / sum;
+            scale[r] = 1.0 / sum;
         }
     }
     if rep.rows.is_empty() {
@@ -560,11 +567,6 @@ impl FormFactors {
     pub fn diagnostics(&self) -> Diagnostics {
         use rayon::prelude::*;
         let n = self.len();
-        let empty = || Diagnostics {
-            min_row_sum: f64::INFINITY,
-            max_row_sum: f64::NEG_INFINITY,
-            ..Default::default()
-        };
         // Rows in parallel, in blocks of consecutive rows; `reciprocity_beyond_3se` carries
         // the count of pairs beyond 3 standard errors and `nnz` the count of pairs until
         // the final division. Within a block, the rows `i` come in increasing order, so the
@@ -572,45 +574,16 @@ impl FormFactors {
         // j (one binary search per block and row j, then a step or two per lookup, where a
         // binary search per entry took ~10 scattered reads).
         let block = n.div_ceil(16 * rayon::current_num_threads()).max(1);
-        let mut d = (0..n.div_ceil(block))
+        let d = (0..n.div_ceil(block))
             .into_par_iter()
             .map(|b| {
                 let mut cursor = vec![usize::MAX; n];
                 (b * block..((b + 1) * block).min(n))
                     .map(|i| self.row_diagnostics(i, &mut cursor))
-                    .fold(empty(), merge)
+                    .fold(Diagnostics::empty(), Diagnostics::merge)
             })
-            .reduce(empty, merge);
-        fn merge(a: Diagnostics, b: Diagnostics) -> Diagnostics {
-            Diagnostics {
-                min_row_sum: a.min_row_sum.min(b.min_row_sum),
-                max_row_sum: a.max_row_sum.max(b.max_row_sum),
-                max_row: if b.max_row_sum > a.max_row_sum {
-                    b.max_row
-                } else {
-                    a.max_row
-                },
-                reciprocity: a.reciprocity.max(b.reciprocity),
-                reciprocity_significant: a.reciprocity_significant.max(b.reciprocity_significant),
-                reciprocity_beyond_3se: a.reciprocity_beyond_3se + b.reciprocity_beyond_3se,
-                empty_rows: a.empty_rows + b.empty_rows,
-                rows_over_one: a.rows_over_one + b.rows_over_one,
-                out_of_range: a.out_of_range + b.out_of_range,
-                nnz: a.nnz + b.nnz,
-            }
-        }
-        let pairs = d.nnz;
-        d.reciprocity_beyond_3se = if pairs > 0 {
-            d.reciprocity_beyond_3se / pairs as f64
-        } else {
-            0.0
-        };
-        d.nnz = self.f.nnz();
-        if n == 0 {
-            d.min_row_sum = 0.0;
-            d.max_row_sum = 0.0;
-        }
-        d
+            .reduce(Diagnostics::empty, Diagnostics::merge);
+        d.finish(self.f.nnz(), n)
     }
 
     /// The diagnostics of row `i` alone (see [`FormFactors::diagnostics`] for the two
@@ -619,77 +592,416 @@ impl FormFactors {
     /// increasing order for one cursor array.
     fn row_diagnostics(&self, i: usize, cursor: &mut [usize]) -> Diagnostics {
         let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));
-        let (cols, vals, ses) = (
+        let row = (
             &self.f.indices()[lo..hi],
             &self.f.data()[lo..hi],
             &self.se[lo..hi],
         );
-        // `+ 0.0`: the sum of no terms is -0.0, printed `-0.00000` for an empty row.
-        let s: f64 = vals.iter().sum::<f64>() + 0.0;
-        let mut d = Diagnostics {
-            min_row_sum: s,
-            max_row_sum: s,
-            max_row: i,
-            empty_rows: usize::from(vals.is_empty()),
-            rows_over_one: usize::from(over_one(s, self.row_sum_stderr(i), 3.0)),
-            ..Default::default()
-        };
-        let (mut pairs, mut beyond) = (0usize, 0usize);
-        for ((&j, &f), &se_ij) in cols.iter().zip(vals).zip(ses) {
-            let (j, se_ij) = (j as usize, f64::from(se_ij));
-            if !f.is_finite() || !(0.0..=1.0).contains(&f) {
-                d.out_of_range += 1;
+        row_diagnostics(i, row, &self.area, |_, j| {
+            let (ptr, idx) = (self.f.indptr(), self.f.indices());
+            let (lo, hi) = (ptr.index(j), ptr.index(j + 1));
+            let mut c = cursor[j];
+            if c == usize::MAX {
+                c = lo + idx[lo..hi].partition_point(|&x| (x as usize) < i);
             }
-            let back = {
-                let (ptr, idx) = (self.f.indptr(), self.f.indices());
-                let (lo, hi) = (ptr.index(j), ptr.index(j + 1));
-                let mut c = cursor[j];
-                if c == usize::MAX {
-                    c = lo + idx[lo..hi].partition_point(|&x| (x as usize) < i);
-                }
-                while c < hi && (idx[c] as usize) < i {
-                    c += 1;
-                }
-                cursor[j] = c;
-                (c < hi && idx[c] as usize == i).then_some(c)
-            };
-            if let Some(b) = self.reciprocity_of((i, j), (f, se_ij), back, &mut d) {
-                pairs += 1;
-                beyond += usize::from(b);
+            while c < hi && (idx[c] as usize) < i {
+                c += 1;
             }
+            cursor[j] = c;
+            (c < hi && idx[c] as usize == i).then(|| (self.f.data()[c], self.se[c]))
+        })
+    }
+}
+
+/// The diagnostics of row `i` (its columns, values and standard errors; `area` of every
+/// patch), with the two counters [`FormFactors::diagnostics`] divides at the end carried
+/// as counts. `back(k, j)` is the stored back entry `F_ji` of the row's `k`-th entry
+/// `F_ij`, with its standard error, or `None` when `F_ji` is not stored.
+fn row_diagnostics(
+    i: usize,
+    (cols, vals, ses): (&[u32], &[f64], &[f32]),
+    area: &[f64],
+    mut back: impl FnMut(usize, usize) -> Option<(f64, f32)>,
+) -> Diagnostics {
+    // `+ 0.0`: the sum of no terms is -0.0, printed `-0.00000` for an empty row.
+    let s: f64 = vals.iter().sum::<f64>() + 0.0;
+    let se_sum = ses
+        .iter()
+        .map(|&s| f64::from(s) * f64::from(s))
+        .sum::<f64>()
+        .sqrt();
+    let mut d = Diagnostics {
+        min_row_sum: s,
+        max_row_sum: s,
+        max_row: i,
+        empty_rows: usize::from(vals.is_empty()),
+        rows_over_one: usize::from(over_one(s, se_sum, 3.0)),
+        ..Default::default()
+    };
+    let (mut pairs, mut beyond) = (0usize, 0usize);
+    for (k, ((&j, &f), &se_ij)) in cols.iter().zip(vals).zip(ses).enumerate() {
+        let (j, se_ij) = (j as usize, f64::from(se_ij));
+        if !f.is_finite() || !(0.0..=1.0).contains(&f) {
+            d.out_of_range += 1;
         }
-        d.reciprocity_beyond_3se = beyond as f64;
-        d.nnz = pairs;
-        d
+        let b = back(k, j);
+        if let Some(b) = reciprocity_of(area, (i, j), (f, se_ij), b, &mut d) {
+            pairs += 1;
+            beyond += usize::from(b);
+        }
+    }
+    d.reciprocity_beyond_3se = beyond as f64;
+    d.nnz = pairs;
+    d
+}
+
+/// Folds the reciprocity gap `|A_i F_ij - A_j F_ji|` of the stored entry `F_ij = f`
+/// (standard error `se_ij`), whose back entry `F_ji` is `back` (`None`: not stored, 0),
+/// into `d.reciprocity` and `d.reciprocity_significant`. Returns `None` when both sides
+/// are 0, else whether the gap is beyond 3 combined standard errors.
+fn reciprocity_of(
+    area: &[f64],
+    (i, j): (usize, usize),
+    (f, se_ij): (f64, f64),
+    back: Option<(f64, f32)>,
+    d: &mut Diagnostics,
+) -> Option<bool> {
+    let (f_back, se_ji) = back.map_or((0.0, 0.0), |(f, s)| (f, f64::from(s)));
+    let fij = area[i] * f;
+    let fji = area[j] * f_back;
+    let m = fij.abs().max(fji.abs());
+    if m <= 0.0 {
+        return None;
+    }
+    let gap = (fij - fji).abs();
+    d.reciprocity = d.reciprocity.max(gap / m);
+    if f.max(f_back) >= SIGNIFICANT {
+        d.reciprocity_significant = d.reciprocity_significant.max(gap / m);
+    }
+    let se = (area[i] * se_ij).hypot(area[j] * se_ji);
+    Some(gap > 3.0 * se && gap > 1e-12 * m)
+}
+
+impl Diagnostics {
+    /// The neutral element of [`Diagnostics::merge`].
+    pub fn empty() -> Diagnostics {
+        Diagnostics {
+            min_row_sum: f64::INFINITY,
+            max_row_sum: f64::NEG_INFINITY,
+            ..Default::default()
+        }
     }
 
-    /// Folds the reciprocity gap `|A_i F_ij - A_j F_ji|` of the stored entry `F_ij = f`
-    /// (standard error `se_ij`), whose back entry `F_ji` is at position `back` of the
-    /// arrays (`None`: not stored, 0), into `d.reciprocity` and
-    /// `d.reciprocity_significant`. Returns `None` when both sides are 0, else whether the
-    /// gap is beyond 3 combined standard errors.
-    fn reciprocity_of(
-        &self,
-        (i, j): (usize, usize),
-        (f, se_ij): (f64, f64),
-        back: Option<usize>,
-        d: &mut Diagnostics,
-    ) -> Option<bool> {
-        let (f_back, se_ji) =
-            back.map_or((0.0, 0.0), |k| (self.f.data()[k], f64::from(self.se[k])));
-        let fij = self.area[i] * f;
-        let fji = self.area[j] * f_back;
-        let m = fij.abs().max(fji.abs());
-        if m <= 0.0 {
-            return None;
+    /// The diagnostics of rows `a` then rows `b` (both before [`Diagnostics::finish`]:
+    /// `reciprocity_beyond_3se` and `nnz` still count pairs). Of equal largest row sums the
+    /// one of `a` is kept, so rows merged in order report the first.
+    pub fn merge(a: Diagnostics, b: Diagnostics) -> Diagnostics {
+        Diagnostics {
+            min_row_sum: a.min_row_sum.min(b.min_row_sum),
+            max_row_sum: a.max_row_sum.max(b.max_row_sum),
+            max_row: if b.max_row_sum > a.max_row_sum {
+                b.max_row
+            } else {
+                a.max_row
+            },
+            reciprocity: a.reciprocity.max(b.reciprocity),
+            reciprocity_significant: a.reciprocity_significant.max(b.reciprocity_significant),
+            reciprocity_beyond_3se: a.reciprocity_beyond_3se + b.reciprocity_beyond_3se,
+            empty_rows: a.empty_rows + b.empty_rows,
+            rows_over_one: a.rows_over_one + b.rows_over_one,
+            out_of_range: a.out_of_range + b.out_of_range,
+            nnz: a.nnz + b.nnz,
         }
-        let gap = (fij - fji).abs();
-        d.reciprocity = d.reciprocity.max(gap / m);
-        if f.max(f_back) >= SIGNIFICANT {
-            d.reciprocity_significant = d.reciprocity_significant.max(gap / m);
+    }
+
+    /// Merged diagnostics of all `rows` rows of a matrix of `nnz` stored entries, made
+    /// final: the share of pairs beyond 3 standard errors, the entry count.
+    pub fn finish(mut self, nnz: usize, rows: usize) -> Diagnostics {
+        let pairs = self.nnz;
+        self.reciprocity_beyond_3se = if pairs > 0 {
+            self.reciprocity_beyond_3se / pairs as f64
+        } else {
+            0.0
+        };
+        self.nnz = nnz;
+        if rows == 0 {
+            self.min_row_sum = 0.0;
+            self.max_row_sum = 0.0;
         }
-        let se = (self.area[i] * se_ij).hypot(self.area[j] * se_ji);
-        Some(gap > 3.0 * se && gap > 1e-12 * m)
+        self
+    }
+
+    /// The fields as numbers (exact: the counts are far below 2^53), to send between
+    /// ranks; [`Diagnostics::from_numbers`] reads them back.
+    pub fn to_numbers(&self) -> [f64; 10] {
+        [
+            self.min_row_sum,
+            self.max_row_sum,
+            self.max_row as f64,
+            self.reciprocity,
+            self.reciprocity_significant,
+            self.reciprocity_beyond_3se,
+            self.empty_rows as f64,
+            self.rows_over_one as f64,
+            self.out_of_range as f64,
+            self.nnz as f64,
+        ]
+    }
+
+    /// The inverse of [`Diagnostics::to_numbers`].
+    pub fn from_numbers(v: &[f64]) -> Diagnostics {
+        Diagnostics {
+            min_row_sum: v[0],
+            max_row_sum: v[1],
+            max_row: v[2] as usize,
+            reciprocity: v[3],
+            reciprocity_significant: v[4],
+            reciprocity_beyond_3se: v[5],
+            empty_rows: v[6] as usize,
+            rows_over_one: v[7] as usize,
+            out_of_range: v[8] as usize,
+            nnz: v[9] as usize,
+        }
+    }
+}
+
+/// Rows `lo..hi` of a form-factor matrix, held by one rank of a distributed run
+/// ([`crate::formfactor::shard`]): the same rows, bit for bit, as those of the matrix one
+/// process assembles ([`CsrBuilder::from_upper`], [`CsrBuilder::push_rows`]), and their
+/// diagnostics, computed while each entry's back entry `F_ji` was at hand.
+#[derive(Clone, Debug)]
+pub struct Block {
+    /// First row.
+    pub lo: usize,
+    /// The rows (`hi - lo` of them, `n` columns).
+    pub f: Csr,
+    /// Standard error of each stored entry, aligned with `f.data()`.
+    pub se: Vec<f32>,
+    /// The rows' diagnostics as [`FormFactors::diagnostics`] computes them row by row,
+    /// before [`Diagnostics::finish`] (merge the blocks in order, then finish).
+    pub diagnostics: Diagnostics,
+}
+
+impl Block {
+    /// Rows in the block.
+    pub fn rows(&self) -> usize {
+        self.f.rows()
+    }
+
+    /// One past the last row.
+    pub fn hi(&self) -> usize {
+        self.lo + self.f.rows()
+    }
+
+    /// The largest standard error of a row sum in the block (as
+    /// [`FormFactors::row_sum_stderr`]), 0 for no rows.
+    pub fn max_row_sum_stderr(&self) -> f64 {
+        let ptr = self.f.indptr().to_proper().into_owned();
+        (0..self.rows())
+            .map(|r| {
+                self.se[ptr[r]..ptr[r + 1]]
+                    .iter()
+                    .map(|&s| f64::from(s) * f64::from(s))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .fold(0.0, f64::max)
+    }
+}
+
+/// Builds a [`Block`] from computed rows in two passes over the same parts of rows:
+/// [`BlockBuilder::count`] each, then [`BlockBuilder::fill`] each **in increasing row
+/// order**, then [`BlockBuilder::finish`]. A part is (part of) one computed row, sorted by
+/// column; the builder keeps what falls in the block: the entries of its rows, and, for
+/// estimators that compute only the upper triangle, the entries whose mirror falls in it
+/// (written as [`CsrBuilder::from_upper`] writes them: a row's mirrored entries in
+/// increasing source row, then its own). The arrays are allocated once, at their size.
+#[derive(Debug)]
+pub struct BlockBuilder<'a> {
+    lo: usize,
+    upper: bool,
+    area: &'a [f64],
+    /// Entries per row, then (after [`BlockBuilder::count`]) row pointers.
+    len: Vec<usize>,
+    /// Mirrored entries per row (upper only).
+    lower: Vec<usize>,
+    /// Next free slot of each row's mirrored and own parts.
+    cursor: Vec<(usize, usize)>,
+    indptr: Vec<usize>,
+    ind: Vec<u32>,
+    val: Vec<f64>,
+    se: Vec<f32>,
+    /// Back entry of each slot: `F_ji` (NaN: not stored) and its standard error.
+    back: Vec<(f64, f32)>,
+    /// Full rows: `(r, i, F_ij, se)` for entries `F_ij` whose column `lo + r` falls in the
+    /// block: the back entries of the block's `F_ji`, filled in at the end.
+    backs: Vec<(u32, u32, f64, f32)>,
+    last: Option<usize>,
+}
+
+impl<'a> BlockBuilder<'a> {
+    /// A builder of rows `lo..hi`; `upper` when the rows hold only `j > i`; `area` of
+    /// every patch.
+    pub fn new(lo: usize, hi: usize, upper: bool, area: &'a [f64]) -> BlockBuilder<'a> {
+        let rows = hi.saturating_sub(lo);
+        BlockBuilder {
+            lo,
+            upper,
+            area,
+            len: vec![0; rows],
+            lower: vec![0; rows],
+            cursor: Vec::new(),
+            indptr: Vec::new(),
+            ind: Vec::new(),
+            val: Vec::new(),
+            se: Vec::new(),
+            back: Vec::new(),
+            backs: Vec::new(),
+            last: None,
+        }
+    }
+
+    fn local(&self, k: usize) -> Option<usize> {
+        k.checked_sub(self.lo).filter(|&r| r < self.len.len())
+    }
+
+    /// First pass: counts the entries of computed row `i`'s part `entries`.
+    pub fn count(&mut self, i: usize, entries: &[Entry]) {
+        if let Some(r) = self.local(i) {
+            self.len[r] += entries.len();
+        }
+        if self.upper {
+            for e in entries {
+                if let Some(r) = self.local(e.j as usize) {
+                    self.len[r] += 1;
+                    self.lower[r] += 1;
+                }
+            }
+        }
+    }
+
+    fn allocate(&mut self) {
+        let rows = self.len.len();
+        let mut indptr = Vec::with_capacity(rows + 1);
+        indptr.push(0);
+        for &l in &self.len {
+            indptr.push(indptr[indptr.len() - 1] + l);
+        }
+        let nnz = indptr[rows];
+        self.cursor = (0..rows)
+            .map(|r| (indptr[r], indptr[r] + self.lower[r]))
+            .collect();
+        self.indptr = indptr;
+        self.ind = vec![0; nnz];
+        self.val = vec![0.0; nnz];
+        self.se = vec![0.0; nnz];
+        self.back = vec![(f64::NAN, 0.0); nnz];
+    }
+
+    /// Second pass: writes computed row `i`'s part `entries`; parts must come in
+    /// increasing `i` (each row once), after every part was counted.
+    ///
+    /// # Panics
+    /// When parts come out of order, or more entries come than were counted.
+    pub fn fill(&mut self, i: usize, entries: &[Entry]) {
+        if self.indptr.is_empty() {
+            self.allocate();
+        }
+        assert!(
+            self.last.is_none_or(|l| l < i),
+            "parts of rows must come in increasing order"
+        );
+        self.last = Some(i);
+        let own = self.local(i);
+        for e in entries {
+            let j = e.j as usize;
+            let theirs = self.local(j);
+            if self.upper {
+                // As `CsrBuilder::from_upper` computes the mirror, bit for bit.
+                let s = self.area[i] / self.area[j];
+                let (mf, ms) = (e.f * s, (e.se * s) as f32);
+                if let Some(r) = own {
+                    let k = self.cursor[r].1;
+                    self.cursor[r].1 += 1;
+                    self.put(k, (e.j, e.f, e.se as f32), (mf, ms));
+                }
+                if let Some(r) = theirs {
+                    let k = self.cursor[r].0;
+                    self.cursor[r].0 += 1;
+                    self.put(k, (i as u32, mf, ms), (e.f, e.se as f32));
+                }
+            } else {
+                if let Some(r) = own {
+                    let k = self.cursor[r].0;
+                    self.cursor[r].0 += 1;
+                    self.put(k, (e.j, e.f, e.se as f32), (f64::NAN, 0.0));
+                }
+                if let Some(r) = theirs {
+                    self.backs.push((r as u32, i as u32, e.f, e.se as f32));
+                }
+            }
+        }
+    }
+
+    #[inline]
+    fn put(&mut self, k: usize, (j, f, se): (u32, f64, f32), back: (f64, f32)) {
+        self.ind[k] = j;
+        self.val[k] = f;
+        self.se[k] = se;
+        self.back[k] = back;
+    }
+
+    /// The block, with its diagnostics from the back entries (which are then dropped).
+    ///
+    /// # Panics
+    /// When fewer entries came than were counted.
+    pub fn finish(mut self) -> Block {
+        use rayon::prelude::*;
+        if self.indptr.is_empty() {
+            self.allocate();
+        }
+        self.len = Vec::new();
+        let rows = self.indptr.len() - 1;
+        for (r, c) in self.cursor.iter().enumerate() {
+            let whole = if self.upper {
+                *c == (self.indptr[r] + self.lower[r], self.indptr[r + 1])
+            } else {
+                c.0 == self.indptr[r + 1]
+            };
+            assert!(
+                whole,
+                "row {} of the block got other entries than were counted",
+                self.lo + r
+            );
+        }
+        for &(r, i, f, se) in &std::mem::take(&mut self.backs) {
+            let (a, z) = (self.indptr[r as usize], self.indptr[r as usize + 1]);
+            if let Ok(k) = self.ind[a..z].binary_search(&i) {
+                self.back[a + k] = (f, se);
+            }
+        }
+        let n = self.area.len();
+        let (lo, area) = (self.lo, self.area);
+        let (indptr, ind, val, se, back) = (self.indptr, self.ind, self.val, self.se, self.back);
+        let diagnostics = (0..rows)
+            .into_par_iter()
+            .map(|r| {
+                let (a, b) = (indptr[r], indptr[r + 1]);
+                let row = (&ind[a..b], &val[a..b], &se[a..b]);
+                row_diagnostics(lo + r, row, area, |k, _| {
+                    let (f, s) = back[a + k];
+                    (!f.is_nan()).then_some((f, s))
+                })
+            })
+            .fold(Diagnostics::empty, Diagnostics::merge)
+            .reduce(Diagnostics::empty, Diagnostics::merge);
+        drop(back);
+        Block {
+            lo,
+            f: Csr::new((rows, n), indptr, ind, val),
+            se,
+            diagnostics,
+        }
     }
 }
 
@@ -922,10 +1234,9 @@ mod tests {
             }
             d.min_row_sum = d.min_row_sum.min(s);
             for (k, (j, &f)) in row.iter().enumerate() {
-                let back = ff.f.nnz_index(j, i).map(|k| k.0);
-                if let Some(b) =
-                    ff.reciprocity_of((i, j), (f, f64::from(ff.se[lo + k])), back, &mut d)
-                {
+                let back = ff.f.nnz_index(j, i).map(|k| (ff.f.data()[k.0], ff.se[k.0]));
+                let fs = (f, f64::from(ff.se[lo + k]));
+                if let Some(b) = reciprocity_of(&ff.area, (i, j), fs, back, &mut d) {
                     pairs += 1;
                     beyond += usize::from(b);
                 }

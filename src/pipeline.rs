@@ -9,7 +9,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use crate::budget;
+use crate::cluster::{Cluster, Single};
 use crate::error::{Error, Result};
+use crate::formfactor::shard::RankReport;
 use crate::formfactor::{
     self, AreaMc, Context, Estimator, Hemicube, Hemisphere, Nodes, Pattern, SemiAnalytic,
 };
@@ -22,6 +24,8 @@ use crate::scene::{Scene, Units};
 use crate::solve::{self, Method, Options, SolveReport, System};
 use crate::store;
 use crate::visibility::Visibility;
+
+pub mod distributed;
 
 /// Which form-factor estimator to use.
 #[derive(Clone, Debug, PartialEq)]
@@ -240,6 +244,8 @@ pub struct BakeSummary {
     pub embree: String,
     /// What the hierarchical solution did (hierarchical bakes only).
     pub hierarchy: Option<hierarchy::Report>,
+    /// What each rank did, for a bake on several ranks (empty for one process).
+    pub ranks: Vec<RankReport>,
 }
 
 impl BakeSummary {
@@ -410,30 +416,57 @@ fn check_rows(matrix: &Path, ff: &FormFactors, repair: Repair) -> Result<()> {
     })
 }
 
+/// The form factors of a run, as [`factors_of`] returns them.
+struct Factors {
+    ff: FormFactors,
+    /// The Embree version used ("not used" when read).
+    embree: String,
+    repair: RepairReport,
+    /// What each rank did, for a distributed run (empty for one process).
+    ranks: Vec<RankReport>,
+}
+
 /// The form factors of a run: read from the folder `stored` when given (refused there
 /// when a row is over 1 beyond chance, see [`read_factors`]), else computed by the
-/// estimator with the seed; then repaired as `repair` says. Returns the factors, the
-/// Embree version used ("not used" when read) and the repair's report.
+/// estimator with the seed (shared between the ranks of `cluster` and gathered on rank 0,
+/// [`distributed::form_factors_root`]); then repaired as `repair` says. `None` on the
+/// ranks other than 0.
 fn factors_of(
     patches: &PatchSet,
     stored: Option<&Path>,
     (estimator, seed): (&EstimatorChoice, u64),
     repair: Repair,
     timer: &mut Timer,
-) -> Result<(FormFactors, String, RepairReport)> {
-    let (ff, embree) = match stored {
+    cluster: &dyn Cluster,
+) -> Result<Option<Factors>> {
+    let (ff, embree, ranks) = match stored {
         Some(dir) => (
             timer.run("read factors", 0, || read_factors(dir, patches, repair))?,
             String::from("not used"),
+            Vec::new(),
         ),
+        None if cluster.size() > 1 => {
+            let (ff, stages, embree, ranks) =
+                distributed::form_factors_root(patches, estimator, seed, timer.obs, cluster)?;
+            timer.stages.extend(stages);
+            let Some(ff) = ff else {
+                return Ok(None);
+            };
+            (ff, embree, ranks)
+        }
         None => {
             let (ff, stages, embree) = form_factors(patches, estimator, seed, timer.obs)?;
             timer.stages.extend(stages);
-            (ff, embree)
+            (ff, embree, Vec::new())
         }
     };
-    let (ff, report) = timer.run("repair", 0, || repair::apply(ff, repair));
-    Ok((ff, embree, report))
+    let (ff, repair) = timer.run("repair", 0, || repair::apply(ff, repair));
+    Ok(Some(Factors {
+        ff,
+        embree,
+        repair,
+        ranks,
+    }))
 }
 
 /// Computes the form factors of a patch set (builds the BVH as its own stage).
@@ -535,11 +568,24 @@ pub fn write_step_previews(
 /// Runs the whole bake and writes `radiosity.exr`, `mesh.ply`, `mesh.glb` and
 /// `preview.png`.
 pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
+    let s = bake_gathered(cfg, obs, &Single)?;
+    Ok(s.expect("one process is rank 0"))
+}
+
+/// The bake of one process, or of the ranks of `cluster` with the form factors gathered
+/// on rank 0, which goes on alone ([`distributed::bake_on`]); `None` on the other ranks.
+fn bake_gathered(
+    cfg: &BakeConfig,
+    obs: &dyn Observer,
+    cluster: &dyn Cluster,
+) -> Result<Option<BakeSummary>> {
     let mut timer = Timer {
         obs,
         stages: Vec::new(),
     };
-    output::check_folder(&cfg.out_dir, FolderKind::Bake)?;
+    if cluster.is_root() {
+        output::check_folder(&cfg.out_dir, FolderKind::Bake)?;
+    }
     let scene = timer.run("load", 0, || load_scene(&cfg.scene, cfg.two_sided))?;
     scene.require_emitter()?;
     let mut early = match cfg.lightmap {
@@ -554,7 +600,7 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
     }
     early.extend(early_warnings(&scene, obs));
     if let Some(h) = &cfg.hierarchy {
-        return bake_hierarchical(cfg, h, scene, early, timer);
+        return bake_hierarchical(cfg, h, scene, early, timer).map(Some);
     }
     check_budget(
         &scene,
@@ -569,13 +615,22 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
         // Known now, not only after the form factors.
         solve::direct::check_size(patches.len())?;
     }
-    let (ff, embree, repair_report) = factors_of(
+    let Some(Factors {
+        ff,
+        embree,
+        repair: repair_report,
+        ranks,
+    }) = factors_of(
         &patches,
         cfg.factors.as_deref(),
         (&cfg.estimator, cfg.seed),
         cfg.repair,
         &mut timer,
-    )?;
+        cluster,
+    )?
+    else {
+        return Ok(None);
+    };
     let (diagnostics, max_row_sum_stderr) = timer.run("diagnostics", 0, || {
         let worst = (0..ff.len())
             .map(|i| ff.row_sum_stderr(i))
@@ -619,7 +674,7 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
             )
         })
     })?;
-    Ok(BakeSummary {
+    Ok(Some(BakeSummary {
         scene: scene.name.clone(),
         patches: patches.len(),
         triangles: patches.triangles.len(),
@@ -646,7 +701,8 @@ pub fn bake(cfg: &BakeConfig, obs: &dyn Observer) -> Result<BakeSummary> {
             .collect(),
         embree,
         hierarchy: None,
-    })
+        ranks,
+    }))
 }
 
 /// Refuses, before any work, what the hierarchical method does not support: two-sided
@@ -805,6 +861,7 @@ fn bake_hierarchical(
             .collect(),
         embree,
         hierarchy: Some(r),
+        ranks: Vec::new(),
     })
 }
 
@@ -823,6 +880,8 @@ pub struct FactorsSummary {
     pub peak_memory: u64,
     /// Warnings about the scene (a closed room whose faces point out).
     pub warnings: Vec<String>,
+    /// What each rank did, for factors computed on several ranks (empty for one process).
+    pub ranks: Vec<RankReport>,
 }
 
 /// Computes form factors for a scene and stores them in `out_dir` (see [`store`]), within
@@ -865,35 +924,109 @@ pub fn factors_within(
     two_sided: bool,
     obs: &dyn Observer,
 ) -> Result<FactorsSummary> {
+    let job = FactorsJob {
+        scene,
+        resolution,
+        estimator,
+        seed,
+        out_dir,
+        repair,
+        format,
+        max_memory,
+        two_sided,
+    };
+    let s = factors_on(&job, obs, &Single)?;
+    Ok(s.expect("one process is rank 0"))
+}
+
+/// What `radiosity factors` is asked to do ([`factors_within`], [`factors_on`]).
+#[derive(Clone, Copy, Debug)]
+pub struct FactorsJob<'a> {
+    /// Built-in scene name or OBJ path.
+    pub scene: &'a str,
+    /// Patch resolution.
+    pub resolution: Resolution,
+    /// Estimator.
+    pub estimator: &'a EstimatorChoice,
+    /// Seed of the random streams.
+    pub seed: u64,
+    /// The folder to write.
+    pub out_dir: &'a Path,
+    /// Repair after estimation.
+    pub repair: Repair,
+    /// Matrix layout.
+    pub format: store::Format,
+    /// Memory limit in bytes (`None`: the available memory).
+    pub max_memory: Option<u64>,
+    /// Every face two-sided (`--two-sided`).
+    pub two_sided: bool,
+}
+
+/// [`factors_within`] on the ranks of `cluster`: every rank loads the scene and builds
+/// its own BVH, the rows are shared between the ranks and gathered on rank 0
+/// ([`distributed::form_factors_root`]), which repairs, checks and writes the folder:
+/// the files one process writes, bit for bit. `None` on the other ranks.
+pub fn factors_on(
+    job: &FactorsJob,
+    obs: &dyn Observer,
+    cluster: &dyn Cluster,
+) -> Result<Option<FactorsSummary>> {
     let mut timer = Timer {
         obs,
         stages: Vec::new(),
     };
-    output::check_folder(out_dir, FolderKind::Factors)?;
-    let scene = timer.run("load", 0, || load_scene(scene, two_sided))?;
-    let warnings = early_warnings(&scene, obs);
-    check_budget(&scene, resolution, Some(estimator), None, None, max_memory)?;
-    let patches = timer.run("mesh", 0, || PatchSet::build(&scene, resolution))?;
-    let (ff, stages, _) = form_factors(&patches, estimator, seed, obs)?;
-    timer.stages.extend(stages);
-    let (ff, repair_report) = timer.run("repair", 0, || repair::apply(ff, repair));
+    if cluster.is_root() {
+        output::check_folder(job.out_dir, FolderKind::Factors)?;
+    }
+    let scene = timer.run("load", 0, || load_scene(job.scene, job.two_sided))?;
+    let warnings = if cluster.is_root() {
+        early_warnings(&scene, obs)
+    } else {
+        Vec::new()
+    };
+    check_budget(
+        &scene,
+        job.resolution,
+        Some(job.estimator),
+        None,
+        None,
+        job.max_memory,
+    )?;
+    let patches = timer.run("mesh", 0, || PatchSet::build(&scene, job.resolution))?;
+    let Some(Factors {
+        ff,
+        repair: repair_report,
+        ranks,
+        ..
+    }) = factors_of(
+        &patches,
+        None,
+        (job.estimator, job.seed),
+        job.repair,
+        &mut timer,
+        cluster,
+    )?
+    else {
+        return Ok(None);
+    };
     let diagnostics = timer.run("diagnostics", 0, || ff.diagnostics());
     let provenance = timer.run("write", 0, || {
-        store::write(out_dir, &patches, &ff, repair, format)
+        store::write(job.out_dir, &patches, &ff, job.repair, job.format)
     })?;
     let warnings = warnings
         .into_iter()
         .chain(blind_warning(blind_patches(&patches, &ff), patches.len()))
         .take(1)
         .collect();
-    Ok(FactorsSummary {
+    Ok(Some(FactorsSummary {
         provenance,
         diagnostics,
         repair: repair_report,
         stages: timer.stages,
         peak_memory: peak_memory(),
         warnings,
-    })
+        ranks,
+    }))
 }
 
 pub use crate::solve::mib;
@@ -1025,12 +1158,13 @@ pub fn wrap(text: &str, width: usize) -> String {
     out
 }
 
-/// The lines every bake summary ends with: notes, times, warnings, files.
+/// The lines every bake summary ends with: notes, ranks, times, warnings, files.
 fn format_tail(o: &mut String, s: &BakeSummary) {
     use std::fmt::Write;
     for n in &s.solve.notes {
         let _ = writeln!(o, "note: {n}");
     }
+    o.push_str(&distributed::format_ranks(&s.ranks));
     let _ = writeln!(o, "{}", format_times(&s.stages, s.peak_memory));
     for w in &s.warnings {
         let _ = writeln!(o, "warning: {w}");
@@ -1253,13 +1387,19 @@ pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary
         cfg.max_memory,
     )?;
     let patches = timer.run("mesh", 0, || PatchSet::build(&scene, cfg.resolution))?;
-    let (ff, _, repair_report) = factors_of(
+    let Factors {
+        ff,
+        repair: repair_report,
+        ..
+    } = factors_of(
         &patches,
         cfg.factors.as_deref(),
         (&cfg.estimator, cfg.seed),
         cfg.repair,
         &mut timer,
-    )?;
+        &Single,
+    )?
+    .expect("one process is rank 0");
     let diagnostics = timer.run("diagnostics", 0, || ff.diagnostics());
     // Surfaces: the materials the patches use, in material order.
     let used: Vec<usize> = (0..patches.materials.len())

@@ -28,7 +28,7 @@
 //! The sparsity pattern is kept: entries that were not stored are not created (a pair
 //! stored in one direction only is left as it is by reciprocity).
 
-use crate::matrix::FormFactors;
+use crate::matrix::{Csr, FormFactors};
 
 /// Which constraints [`repair`] enforces (also the command line's `--repair` values).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
@@ -108,14 +108,28 @@ impl Bounds {
 
 /// Rows summing over 1 and entries outside `[0, 1]`.
 pub fn check(ff: &FormFactors) -> Bounds {
+    check_rows(&ff.f, &ff.se, 0)
+}
+
+/// [`check`] of rows `lo..` of a matrix held as `f` with the standard errors `se` (its
+/// row `r` is the matrix's row `lo + r`, as in a [`crate::matrix::Block`]).
+pub fn check_rows(f: &Csr, se: &[f32], lo: usize) -> Bounds {
     let mut b = Bounds::default();
-    for (i, row) in ff.f.outer_iterator().enumerate() {
+    let ptr = f.indptr();
+    for (r, row) in f.outer_iterator().enumerate() {
+        let i = lo + r;
         let sum: f64 = row.data().iter().sum();
         if sum > 1.0 || !sum.is_finite() {
+            let (a, z) = (ptr.index(r), ptr.index(r + 1));
             b.rows_over_one.push(RowOver {
                 row: i,
                 sum,
-                se: ff.row_sum_stderr(i),
+                // As `FormFactors::row_sum_stderr`.
+                se: se[a..z]
+                    .iter()
+                    .map(|&s| f64::from(s) * f64::from(s))
+                    .sum::<f64>()
+                    .sqrt(),
             });
         }
         for (j, &f) in row.iter() {

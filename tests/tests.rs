@@ -8,6 +8,8 @@ mod gltf;
 mod hierarchy;
 mod invalid;
 mod lightmap;
+#[cfg(feature = "mpi")]
+mod mpi;
 mod objects;
 mod polygons;
 mod reliability;

@@ -41,6 +41,7 @@
 
 use glam::{DVec3, Vec3};
 
+use super::shard::{self, cost};
 use super::{Context, Entry, Estimator, Nodes, Row, Scratch as Buffers, SemiAnalytic};
 use std::f64::consts::FRAC_1_PI;
 use std::sync::{Arc, OnceLock};
@@ -194,6 +195,28 @@ impl Estimator for AreaMc {
 
     fn row(&self, ctx: &Context, a: usize, row: &mut Row, scratch: &mut Buffers) {
         self.row_with(ctx, a, row, ctx.vis, scratch);
+    }
+
+    /// A sample of the row's pairs ([`shard::sampled_row_cost`]): culled, or
+    /// `pairs x replicates` rays.
+    fn row_costs(&self, ctx: &Context, rows: std::ops::Range<usize>) -> Vec<f64> {
+        use rayon::prelude::*;
+        let p = ctx.patches;
+        let rays = self.pairs() as f64;
+        rows.into_par_iter()
+            .map(|a| {
+                let (pa, ka) = p.corner_points(a);
+                cost::ROW
+                    + shard::sampled_row_cost(a, p.len(), |b| {
+                        let (pb, kb) = p.corner_points(b);
+                        if behind_plane(ctx, a, &pb[..kb]) || behind_plane(ctx, b, &pa[..ka]) {
+                            cost::CULL
+                        } else {
+                            cost::PAIR + rays * cost::RAY
+                        }
+                    })
+            })
+            .collect()
     }
 }
 

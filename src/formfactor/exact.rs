@@ -538,6 +538,25 @@ fn integrate_piece(
     }
 }
 
+/// Point-factor evaluations assumed for a piece with no a-priori Gauss order (near or
+/// touching the receiver): orders 8 and 12 (208), which settle perpendicular and parallel
+/// neighbours, and now and then tanh–sinh (225 + 841 + 3249 nodes); a rough middle.
+pub const NEAR_EVALS: f64 = 400.0;
+
+/// The point-factor evaluations [`integrate`] is expected to spend on `piece` against the
+/// receiver polygon `poly` at the relative tolerance `tol_rel`, from the a-priori choice
+/// alone (`m² + (m - 2)²` for the Gauss order `m`; [`NEAR_EVALS`] when near), without
+/// integrating: a cost estimate for sharing rows between processes.
+pub fn expected_evals(piece: Piece, poly: &[DVec3], tol_rel: f64) -> f64 {
+    let (ctr, radius) = piece.ball();
+    let dist = point_polygon_distance(ctr, poly) - radius;
+    let delta = dist / radius.max(f64::MIN_POSITIVE);
+    match gauss_order(delta, tol_rel.max(1e-15)) {
+        Some((m, _)) => (m * m + (m - 2) * (m - 2)) as f64,
+        None => NEAR_EVALS,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -17,6 +17,7 @@ pub mod exact;
 pub mod hemicube;
 pub mod hemisphere;
 pub mod semi;
+pub mod shard;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
@@ -136,6 +137,25 @@ pub trait Estimator: Sync {
     /// Computes row `i` (only `j > i` when [`Estimator::upper_only`]) into `row`, which
     /// arrives cleared, working in the driver's `scratch`.
     fn row(&self, ctx: &Context, i: usize, row: &mut Row, scratch: &mut Scratch);
+
+    /// An estimate of the work of each row of `rows`, in nanoseconds of one core, roughly
+    /// (only the ratios between rows matter): what [`shard`] balances when ranks share the
+    /// rows. It must be cheap next to the rows themselves (it may run in parallel on the
+    /// current pool), and depend on nothing but the inputs (every rank must agree). The
+    /// default counts the pairs a row computes (`n - 1 - i` when
+    /// [`Estimator::upper_only`], else every row alike): right for the estimators whose
+    /// cost per row is fixed (hemisphere shooting, the hemicube).
+    fn row_costs(&self, ctx: &Context, rows: std::ops::Range<usize>) -> Vec<f64> {
+        let n = ctx.patches.len();
+        rows.map(|i| {
+            if self.upper_only() {
+                (n - 1 - i) as f64
+            } else {
+                n as f64
+            }
+        })
+        .collect()
+    }
 }
 
 /// Rows computed in parallel per block before they are appended to the CSR arrays (and
@@ -159,15 +179,20 @@ pub fn compute(ctx: &Context, est: &dyn Estimator, progress: &(dyn Fn(u64) + Syn
     compute_timed(ctx, est, progress).0
 }
 
-/// Computes rows `range` in parallel, each row's entries in an exactly sized vector.
-fn rows_par(
+/// Computes rows `range` (row indices) in parallel, each row's entries in an exactly
+/// sized vector, in the order of `range`.
+fn rows_par<I>(
     ctx: &Context,
     est: &dyn Estimator,
-    range: std::ops::Range<usize>,
+    range: I,
     done: &AtomicU64,
     n: u64,
     progress: &(dyn Fn(u64) + Sync),
-) -> (Vec<Vec<Entry>>, u64) {
+) -> (Vec<Vec<Entry>>, u64)
+where
+    I: IntoParallelIterator<Item = usize>,
+    I::Iter: IndexedParallelIterator,
+{
     let rows: Vec<(Vec<Entry>, u64)> = range
         .into_par_iter()
         .with_min_len(1)

@@ -63,6 +63,7 @@ use std::sync::{Arc, Mutex};
 use glam::DVec3;
 
 use super::exact::{self, Emitter, Piece, Receiver};
+use super::shard::{self, cost};
 use super::{kernel, Context, Entry, Estimator, Row, Scratch as Buffers};
 use crate::mesh::PatchSet;
 use crate::sampling::{jittered, Pcg32};
@@ -264,6 +265,16 @@ impl SemiAnalytic {
     }
 }
 
+/// Possible blockers of anything leaving `i`: not hull faces, a corner in front of i.
+fn blockers_of(p: &PatchSet, prep: &Prepared, i: usize) -> Vec<u32> {
+    let tol = p.plane_tol();
+    prep.blockers
+        .iter()
+        .copied()
+        .filter(|&k| k as usize != i && plane_range(p, i, k as usize).1 > tol)
+        .collect()
+}
+
 /// The part of a convex polygon on the front side of the plane through `c` with normal
 /// `n` (Sutherland–Hodgman against one plane).
 fn clip_front(poly: &[DVec3], n: DVec3, c: DVec3) -> Vec<DVec3> {
@@ -306,6 +317,51 @@ impl Estimator for SemiAnalytic {
     fn row(&self, ctx: &Context, i: usize, row: &mut Row, scratch: &mut Buffers) {
         self.row_with(ctx, i, row, ctx.vis, scratch);
     }
+
+    /// A sample of the row's pairs ([`shard::sampled_row_cost`]) sorted as the row sorts
+    /// them: culled; provably unoccluded, at the evaluations the a-priori quadrature order
+    /// implies ([`exact::expected_evals`]); or sampled, at `replicates x points²` nodes of
+    /// one evaluation and `vis_rays²` rays each; plus the row's blocker list.
+    fn row_costs(&self, ctx: &Context, rows: std::ops::Range<usize>) -> Vec<f64> {
+        use rayon::prelude::*;
+        let prep = self.prepared(ctx.patches);
+        rows.into_par_iter()
+            .map(|i| self.row_cost(ctx.patches, &prep, i))
+            .collect()
+    }
+}
+
+impl SemiAnalytic {
+    /// [`Estimator::row_costs`] of row `i`.
+    fn row_cost(&self, p: &PatchSet, prep: &Prepared, i: usize) -> f64 {
+        let tol = p.plane_tol();
+        let others = blockers_of(p, prep, i);
+        let (m, v) = (self.points.max(1), self.vis_rays.max(1));
+        let nodes = (self.replicates.max(2) * m * m) as f64;
+        let sampled = cost::PAIR + nodes * (cost::EVAL + (v * v) as f64 * cost::RAY);
+        let pairs = shard::sampled_row_cost(i, p.len(), |j| {
+            if plane_range(p, i, j).1 <= tol || plane_range(p, j, i).1 <= tol {
+                return cost::CULL;
+            }
+            let free = self.unoccluded(p, i, j, &others, &prep.boxes);
+            if !(free && self.nodes == Nodes::Gauss) {
+                return sampled;
+            }
+            let (e, r) = if p.area[j] < p.area[i] {
+                (j, i)
+            } else {
+                (i, j)
+            };
+            let ((ce, ke), (cr, kr)) = (corners(p, e), corners(p, r));
+            let piece = if ke == 3 {
+                Piece::Tri([ce[0], ce[1], ce[2]])
+            } else {
+                Piece::Quad(ce)
+            };
+            cost::PAIR + cost::EVAL * exact::expected_evals(piece, &cr[..kr], self.tol)
+        });
+        cost::ROW + others.len() as f64 * cost::CULL + pairs
+    }
 }
 
 /// Buffers of the sampled pairs, reused between pairs and rows (in the driver's
@@ -337,7 +393,7 @@ impl SemiAnalytic {
     ) {
         let p = ctx.patches;
         let prep = self.prepared(p);
-        let others = Self::blockers_of(p, i, &prep);
+        let others = blockers_of(p, &prep, i);
         let scratch = &mut buffers.semi;
         // Patch i's Gauss nodes, mapped once for all the receivers it emits towards.
         let mut own: Option<Emitter> = None;
@@ -359,7 +415,7 @@ impl SemiAnalytic {
     /// The entry `F_ij` of the unordered pair `(i, j)`, `i < j` (`F_ji` follows by
     /// reciprocity), or `None` when the pair is culled or sees nothing; `row.rays` counts
     /// the rays. `others` are the possible blockers with a corner strictly in front of i
-    /// ([`SemiAnalytic::blockers_of`]); `own` caches patch i's Gauss nodes.
+    /// ([`blockers_of`]); `own` caches patch i's Gauss nodes.
     #[allow(clippy::too_many_arguments)]
     fn pair_entry(
         &self,
@@ -397,17 +453,6 @@ impl SemiAnalytic {
         })
     }
 
-    /// The possible blockers of anything leaving patch `i`: patches that are not hull
-    /// faces with a corner strictly in front of i.
-    fn blockers_of(p: &PatchSet, i: usize, prep: &Prepared) -> Vec<u32> {
-        let tol = p.plane_tol();
-        prep.blockers
-            .iter()
-            .copied()
-            .filter(|&k| k as usize != i && plane_range(p, i, k as usize).1 > tol)
-            .collect()
-    }
-
     /// The entry `F_ab` of one unordered pair `(a, b)`, `a < b`, computed on its own (for
     /// estimators that hand this estimator the pairs they cannot sample well, such as
     /// patches that touch: [`super::area`]); as [`SemiAnalytic::pair_entry`].
@@ -420,7 +465,7 @@ impl SemiAnalytic {
         scratch: &mut Scratch,
     ) -> Option<Entry> {
         let prep = self.prepared(ctx.patches);
-        let others = Self::blockers_of(ctx.patches, a, &prep);
+        let others = blockers_of(ctx.patches, &prep, a);
         self.pair_entry(
             ctx,
             (a, b),

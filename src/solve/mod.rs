@@ -100,6 +100,7 @@ use crate::error::{Error, Result};
 
 pub mod cg;
 pub mod direct;
+pub mod distributed;
 pub mod gauss_seidel;
 pub mod jacobi;
 pub mod progressive;
@@ -192,12 +193,29 @@ impl<'a> System<'a> {
                 mismatched.join(", ")
             )));
         }
-        for (i, row) in f.outer_iterator().enumerate() {
-            if let Some((j, v)) = row.iter().find(|(_, v)| !v.is_finite()) {
-                return Err(Error::Config(format!("F[{i}, {j}] = {v} is not finite")));
-            }
+        check_finite(f, 0)?;
+        check_patches(self.rho, self.emit, self.area)?;
+        check_diagonal(f, 0, self.rho)
+    }
+}
+
+/// Refuses a non-finite entry of `f`, whose rows are the matrix's rows `lo..`.
+pub(crate) fn check_finite(f: &Csr, lo: usize) -> Result<()> {
+    for (r, row) in f.outer_iterator().enumerate() {
+        if let Some((j, v)) = row.iter().find(|(_, v)| !v.is_finite()) {
+            return Err(Error::Config(format!(
+                "F[{}, {j}] = {v} is not finite",
+                lo + r
+            )));
         }
-        for (i, rho) in self.rho.iter().enumerate() {
+    }
+    Ok(())
+}
+
+/// Refuses reflectances, emissions or areas [`System::new`] refuses.
+pub(crate) fn check_patches(rho: &[[f64; 3]], emit: &[[f64; 3]], area: &[f64]) -> Result<()> {
+    {
+        for (i, rho) in rho.iter().enumerate() {
             if rho.iter().any(|r| !r.is_finite()) {
                 return Err(Error::Config(format!(
                     "patch {i}: rho = {rho:?} is not a finite number"
@@ -211,32 +229,39 @@ impl<'a> System<'a> {
                 )));
             }
         }
-        for (i, e) in self.emit.iter().enumerate() {
+        for (i, e) in emit.iter().enumerate() {
             if e.iter().any(|v| !v.is_finite()) {
                 return Err(Error::Config(format!(
                     "patch {i}: emit = {e:?} is not a finite number"
                 )));
             }
         }
-        for (i, &a) in self.area.iter().enumerate() {
+        for (i, &a) in area.iter().enumerate() {
             if !(a.is_finite() && a > 0.0) {
                 return Err(Error::Config(format!(
                     "patch {i}: area {a} is not a positive number"
                 )));
             }
         }
-        for i in 0..n {
-            let fii = f.get(i, i).copied().unwrap_or(0.0);
-            let worst = self.rho[i].iter().fold(0.0f64, |m, r| m.max(r * fii));
-            if worst >= 1.0 {
-                return Err(Error::Config(format!(
-                    "patch {i}: rho * F_ii = {worst:.6} >= 1 (F_ii = {fii:.6}): the patch \
-                     would reflect onto itself at least all it receives"
-                )));
-            }
-        }
-        Ok(())
     }
+    Ok(())
+}
+
+/// Refuses a patch that would reflect onto itself all it receives (`rho_i F_ii >= 1`);
+/// `f`'s rows are the matrix's rows `lo..`, `rho` of every patch.
+pub(crate) fn check_diagonal(f: &Csr, lo: usize, rho: &[[f64; 3]]) -> Result<()> {
+    for r in 0..f.rows() {
+        let i = lo + r;
+        let fii = f.get(r, i).copied().unwrap_or(0.0);
+        let worst = rho[i].iter().fold(0.0f64, |m, r| m.max(r * fii));
+        if worst >= 1.0 {
+            return Err(Error::Config(format!(
+                "patch {i}: rho * F_ii = {worst:.6} >= 1 (F_ii = {fii:.6}): the patch \
+                 would reflect onto itself at least all it receives"
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// Stopping rules of the iterative solvers.
@@ -461,7 +486,17 @@ impl<'a> Rows<'a> {
 /// `E_i + rho_i sum_j F_ij b_j`, one row of the Jacobi map.
 #[inline]
 pub(crate) fn gather(sys: &System, rows: &Rows, b: &[[f64; 3]], i: usize) -> [f64; 3] {
-    let (ind, val) = rows.row(i);
+    gather_row(rows.row(i), sys.emit[i], sys.rho[i], b)
+}
+
+/// `e + rho sum_j F_j b_j` over one row's columns and values: [`gather`], for any row.
+#[inline]
+pub(crate) fn gather_row(
+    (ind, val): (&[u32], &[f64]),
+    e: [f64; 3],
+    rho: [f64; 3],
+    b: &[[f64; 3]],
+) -> [f64; 3] {
     let mut acc = [0.0; 3];
     for (&j, &f) in ind.iter().zip(val) {
         let j = j as usize;
@@ -470,7 +505,6 @@ pub(crate) fn gather(sys: &System, rows: &Rows, b: &[[f64; 3]], i: usize) -> [f6
             acc[c] += f * bj[c];
         }
     }
-    let (e, rho) = (sys.emit[i], sys.rho[i]);
     [
         e[0] + rho[0] * acc[0],
         e[1] + rho[1] * acc[1],
@@ -573,7 +607,12 @@ impl Floor {
     /// taken as `|E_i| + |B_i + r| + |B_i|` (exact for non-negative systems).
     #[inline]
     pub(crate) fn of_residual(&self, sys: &System, i: usize, r: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-        let e = sys.emit[i];
+        self.of_residual_at(sys.emit[i], r, b)
+    }
+
+    /// [`Floor::of_residual`] for a patch of emission `e`.
+    #[inline]
+    pub(crate) fn of_residual_at(&self, e: [f64; 3], r: [f64; 3], b: [f64; 3]) -> [f64; 3] {
         self.row(
             r,
             b,
@@ -637,33 +676,51 @@ pub(crate) struct Gain {
     pub(crate) row_sum: f64,
     /// That patch's largest reflectance.
     pub(crate) rho: f64,
+    /// The largest `max_c rho_ic * sum_j |F_ij|`, reached at `patch` (`-inf` for no rows).
+    pub(crate) best: f64,
 }
 
 impl Gain {
     pub(crate) fn new(sys: &System, rows: &Rows) -> Gain {
+        Gain::of_rows(sys.rho, rows, 0)
+    }
+
+    /// The bound over `rows`, which are the matrix's rows `lo..` (`rho` of every patch).
+    pub(crate) fn of_rows(rho: &[[f64; 3]], rows: &Rows, lo: usize) -> Gain {
         let mut g = Gain {
             gain: [0.0; 3],
             patch: 0,
             row_sum: 0.0,
             rho: 0.0,
+            best: f64::NEG_INFINITY,
         };
-        let mut best = f64::NEG_INFINITY;
-        for i in 0..rows.len() {
-            let (_, val) = rows.row(i);
+        for r in 0..rows.len() {
+            let i = lo + r;
+            let (_, val) = rows.row(r);
             let abs_sum: f64 = val.iter().map(|v| v.abs()).sum();
-            let rho = sys.rho[i];
+            let rho = rho[i];
             for (g, r) in g.gain.iter_mut().zip(&rho) {
                 *g = g.max(r * abs_sum);
             }
             let here = rho[0].max(rho[1]).max(rho[2]) * abs_sum;
-            if here > best {
-                best = here;
+            if here > g.best {
+                g.best = here;
                 g.patch = i;
                 g.row_sum = val.iter().sum();
                 g.rho = rho[0].max(rho[1]).max(rho[2]);
             }
         }
         g
+    }
+
+    /// The bound over rows `a` then rows `b`: as [`Gain::of_rows`] over both (of equal
+    /// largest bounds, `a`'s patch is kept).
+    pub(crate) fn merge(a: Gain, b: Gain) -> Gain {
+        let at = if b.best > a.best { b } else { a };
+        Gain {
+            gain: [0, 1, 2].map(|c| a.gain[c].max(b.gain[c])),
+            ..at
+        }
     }
 
     /// The largest bound over channels.

@@ -213,20 +213,7 @@ pub struct Run {
     pub values: Vec<Option<f64>>,
 }
 
-/// CPU seconds of this process so far (user + system, every thread), from
-/// `/proc/self/stat` (fields 14 and 15, in clock ticks of 1/100 s).
-pub fn cpu_seconds() -> f64 {
-    std::fs::read_to_string("/proc/self/stat")
-        .ok()
-        .and_then(|s| {
-            let rest = s.rsplit_once(')')?.1;
-            let f: Vec<&str> = rest.split_whitespace().collect();
-            let u: f64 = f.get(11)?.parse().ok()?;
-            let k: f64 = f.get(12)?.parse().ok()?;
-            Some((u + k) / 100.0)
-        })
-        .unwrap_or(0.0)
-}
+pub use crate::cluster::cpu_seconds;
 
 /// Scores one bake against the reference.
 #[allow(clippy::too_many_arguments)]
