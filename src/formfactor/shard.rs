@@ -5,7 +5,7 @@
 //! replicated: it is small next to the matrix), and computes a share of the rows:
 //!
 //! 1. **Cost.** Each rank estimates the cost of a contiguous `1/K` of the rows with
-//!    [`Estimator::row_cost`] (for the semi-analytic and area estimators: a stratified
+//!    [`Estimator::row_costs`] (for the semi-analytic and area estimators: a stratified
 //!    sample of [`COST_SAMPLES`] of the row's pairs, each priced by its class: culled,
 //!    integrated without rays at the evaluations its quadrature order implies, or sampled
 //!    with rays, see [`cost`]), and the estimates are all-gathered, so every rank holds

@@ -535,7 +535,7 @@ pub fn write(path: &Path, lm: &Lightmap, scene: &str, object: &str) -> Result<()
     )
 }
 
-/// Reads a lightmap written by [`write`]: its `R G B A` texels, size, object name and side.
+/// Reads a lightmap written by [`write()`]: its `R G B A` texels, size, object name and side.
 pub fn read(path: &Path) -> Result<(Vec<[f32; 4]>, usize, String, bool)> {
     let img = super::exr::read_image(path)?;
     let bad = |msg: String| Error::Parse {

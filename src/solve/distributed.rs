@@ -10,7 +10,7 @@
 //! all-gathered into the whole `B^{k+1}` on every rank (`24 n` bytes per sweep in all).
 //!
 //! Everything a rank computes is what [`super::Jacobi`] computes for the same rows: the
-//! same arithmetic in the same order per row ([`super::gather_row`]), and reductions
+//! same arithmetic in the same order per row (`gather_row`), and reductions
 //! that are maxima (exact in any order). So the iterates, the residuals, the stopping
 //! sweep and the returned `B` are those of one process **bit for bit**, on any number of
 //! ranks, and the stopping rule is the one of the [module docs](super): the relative
