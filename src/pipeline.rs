@@ -640,21 +640,7 @@ fn bake_gathered(
     let (b, report) = timer.run("solve", 0, || {
         solve_radiosity(&patches, &ff, cfg.method, &cfg.solve)
     })?;
-    // The outputs store f32: a radiosity past its range would be written as infinite.
-    if let Some(k) = b
-        .iter()
-        .position(|v| v.iter().any(|&c| !(c as f32).is_finite()))
-    {
-        return Err(Error::Scene {
-            scene: scene.source.clone(),
-            msg: format!(
-                "the solve produced radiosity {:?} at patch {k}, not finite in f32 (the EXR and \
-                 PLY store f32, up to {:e}): scale the emissions down",
-                b[k],
-                f32::MAX
-            ),
-        });
-    }
+    check_storable(&scene, &b)?;
     let verts = timer.run("per-vertex", 0, || {
         output::interpolate(&patches, &b, cfg.crease_deg)
     });
@@ -1673,4 +1659,24 @@ pub fn format_thermal_summary(s: &ThermalSummary) -> String {
     }
     o.push('\n');
     wrap(&o, WIDTH)
+}
+
+/// The outputs store f32: a radiosity past its range would be written as infinite, so a
+/// solve whose result does not fit is refused, naming the first patch that does not.
+pub(crate) fn check_storable(scene: &Scene, b: &[[f64; 3]]) -> Result<()> {
+    match b
+        .iter()
+        .position(|v| v.iter().any(|&c| !(c as f32).is_finite()))
+    {
+        None => Ok(()),
+        Some(k) => Err(Error::Scene {
+            scene: scene.source.clone(),
+            msg: format!(
+                "the solve produced radiosity {:?} at patch {k}, not finite in f32 (the EXR and \
+                 PLY store f32, up to {:e}): scale the emissions down",
+                b[k],
+                f32::MAX
+            ),
+        }),
+    }
 }

@@ -389,13 +389,7 @@ fn write_files(
         objects_skipped,
     };
     let prov_path = dir.join("provenance.json");
-    let json = serde_json::to_string_pretty(&prov).map_err(|e| Error::Output {
-        path: prov_path.clone(),
-        msg: e.to_string(),
-    })?;
-    write_atomic(&prov_path, |tmp| {
-        std::fs::write(tmp, &json).map_err(|e| Error::io(tmp, e))
-    })?;
+    crate::output::write_json(&prov_path, &prov)?;
     Ok(prov)
 }
 

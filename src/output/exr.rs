@@ -156,20 +156,25 @@ pub fn write_vertex_channels(
     attributes
         .other
         .insert(text(ATTR_SCENE), AttributeValue::Text(text(scene_name)));
+    write_layer(path, (width, height), attributes, channels)
+}
+
+/// Writes one ZIP-compressed scan-line layer to `path` whole or not at all, with its
+/// header attributes in name order (the one writer behind every EXR this crate makes).
+fn write_layer(
+    path: &Path,
+    size: (usize, usize),
+    attributes: LayerAttributes,
+    channels: SmallVec<[AnyChannel<FlatSamples>; 4]>,
+) -> Result<()> {
     let encoding = Encoding {
         compression: Compression::ZIP16,
         blocks: Blocks::ScanLines,
         line_order: LineOrder::Increasing,
     };
-    let layer = Layer::new(
-        (width, height),
-        attributes,
-        encoding,
-        AnyChannels::sort(channels),
-    );
-    let image = Image::from_layer(layer);
+    let layer = Layer::new(size, attributes, encoding, AnyChannels::sort(channels));
     let mut bytes = Vec::new();
-    image
+    Image::from_layer(layer)
         .write()
         .to_buffered(std::io::Cursor::new(&mut bytes))
         .map_err(|e| exr_error(path, e, "cannot write the EXR file"))?;
@@ -354,29 +359,7 @@ pub fn write_image(
             .other
             .insert(text(k), AttributeValue::Text(text(v)));
     }
-    let encoding = Encoding {
-        compression: Compression::ZIP16,
-        blocks: Blocks::ScanLines,
-        line_order: LineOrder::Increasing,
-    };
-    let layer = Layer::new(
-        (width, height),
-        attributes,
-        encoding,
-        AnyChannels::sort(channels),
-    );
-    let mut bytes = Vec::new();
-    Image::from_layer(layer)
-        .write()
-        .to_buffered(std::io::Cursor::new(&mut bytes))
-        .map_err(|e| exr_error(path, e, "cannot write the EXR file"))?;
-    sort_attributes(&mut bytes).ok_or_else(|| Error::Output {
-        path: path.to_path_buf(),
-        msg: "the EXR writer made a header this crate cannot read back".into(),
-    })?;
-    write_atomic(path, |tmp| {
-        std::fs::write(tmp, &bytes).map_err(|e| Error::io(tmp, e))
-    })
+    write_layer(path, (width, height), attributes, channels)
 }
 
 /// An image read by [`read_image`]: size, float channels by name, text attributes.

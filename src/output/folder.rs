@@ -349,13 +349,7 @@ fn write_manifest(tmp: &Path, kind: FolderKind, run: &str) -> Result<()> {
         files,
     };
     let path = tmp.join(MANIFEST);
-    let json = serde_json::to_string_pretty(&manifest).map_err(|e| Error::Output {
-        path: path.clone(),
-        msg: e.to_string(),
-    })?;
-    super::write_atomic(&path, |t| {
-        std::fs::write(t, json + "\n").map_err(|e| Error::io(t, e))
-    })?;
+    super::write_json(&path, &manifest)?;
     sync_dir(tmp);
     Ok(())
 }

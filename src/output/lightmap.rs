@@ -503,13 +503,7 @@ pub fn write_all(
         lightmaps: entries,
     };
     let path = dir.join(INDEX);
-    let json = serde_json::to_string_pretty(&index).map_err(|e| Error::Output {
-        path: path.clone(),
-        msg: e.to_string(),
-    })?;
-    super::write_atomic(&path, |t| {
-        std::fs::write(t, json + "\n").map_err(|e| Error::io(t, e))
-    })?;
+    super::write_json(&path, &index)?;
     files.push(INDEX.to_string());
     Ok((files, warnings))
 }

@@ -61,6 +61,18 @@ pub fn csv_field(s: &str) -> String {
     }
 }
 
+/// Writes `value` as pretty-printed JSON with a final newline to `path`, whole or not at
+/// all ([`write_atomic`]).
+pub fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<()> {
+    let json = serde_json::to_string_pretty(value).map_err(|e| Error::Output {
+        path: path.to_path_buf(),
+        msg: e.to_string(),
+    })?;
+    write_atomic(path, |t| {
+        std::fs::write(t, json + "\n").map_err(|e| Error::io(t, e))
+    })
+}
+
 /// Writes `path` whole or not at all.
 ///
 /// `f` writes the complete file to a temporary path in the same folder (so that the final

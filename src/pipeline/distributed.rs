@@ -308,20 +308,7 @@ fn bake_rows(
     if !cluster.is_root() {
         return Ok(None);
     }
-    if let Some(k) = b
-        .iter()
-        .position(|v| v.iter().any(|&c| !(c as f32).is_finite()))
-    {
-        return Err(Error::Scene {
-            scene: scene.source.clone(),
-            msg: format!(
-                "the solve produced radiosity {:?} at patch {k}, not finite in f32 (the EXR and \
-                 PLY store f32, up to {:e}): scale the emissions down",
-                b[k],
-                f32::MAX
-            ),
-        });
-    }
+    super::check_storable(&scene, &b)?;
     let verts = timer.run("per-vertex", 0, || {
         output::interpolate(&patches, &b, cfg.crease_deg)
     });

@@ -391,43 +391,26 @@ impl Scene {
 
     /// The nearest face met by the ray `o + t d` (t > 0): its distance, and whether the ray
     /// meets the face's front (the side its counter-clockwise winding faces). `None` when
-    /// the ray leaves the scene. Möller and Trumbore's ray-triangle test over each face's
-    /// fan (faces are planar and convex).
+    /// the ray leaves the scene.
     fn first_hit(&self, o: DVec3, d: DVec3) -> Option<(f64, bool)> {
-        let mut best: Option<(f64, bool)> = None;
-        for f in &self.faces {
-            let c = f.corner_slice();
-            let p = |k: usize| self.positions[c[k] as usize];
-            for k in 1..c.len() - 1 {
-                let (a, b, e) = (p(0), p(k), p(k + 1));
-                let (e1, e2) = (b - a, e - a);
-                let h = d.cross(e2);
-                let det = e1.dot(h);
-                if det.abs() < 1e-300 {
-                    continue;
-                }
-                let s = o - a;
-                let u = s.dot(h) / det;
-                let q = s.cross(e1);
-                let v = d.dot(q) / det;
-                let t = e2.dot(q) / det;
-                if u < 0.0 || v < 0.0 || u + v > 1.0 || t <= 0.0 {
-                    continue;
-                }
-                if best.is_none_or(|(bt, _)| t < bt) {
-                    // det = -d . (e1 x e2): positive when the face's normal faces the
-                    // ray's origin. A two-sided face has a front toward every ray (its
-                    // twin lies on it, wound the other way).
-                    best = Some((t, det > 0.0 || f.is_two_sided()));
-                }
-            }
-        }
-        best
+        self.extreme_hit(o, d, |t, best| t < best)
     }
 
     /// The farthest face met by the ray `o + t d` (t > 0), as [`Scene::first_hit`] gives
     /// the nearest: its distance and whether the ray meets its front.
     fn last_hit(&self, o: DVec3, d: DVec3) -> Option<(f64, bool)> {
+        self.extreme_hit(o, d, |t, best| t > best)
+    }
+
+    /// The hit of the ray `o + t d` (t > 0) that `better(t, best)` prefers over all
+    /// others, with whether the ray meets the face's front. Möller and Trumbore's
+    /// ray-triangle test over each face's fan (faces are planar and convex).
+    fn extreme_hit(
+        &self,
+        o: DVec3,
+        d: DVec3,
+        better: impl Fn(f64, f64) -> bool,
+    ) -> Option<(f64, bool)> {
         let mut best: Option<(f64, bool)> = None;
         for f in &self.faces {
             let c = f.corner_slice();
@@ -448,7 +431,10 @@ impl Scene {
                 if u < 0.0 || v < 0.0 || u + v > 1.0 || t <= 0.0 {
                     continue;
                 }
-                if best.is_none_or(|(bt, _)| t > bt) {
+                if best.is_none_or(|(bt, _)| better(t, bt)) {
+                    // det = -d . (e1 x e2): positive when the face's normal faces the
+                    // ray's origin. A two-sided face has a front toward every ray (its
+                    // twin lies on it, wound the other way).
                     best = Some((t, det > 0.0 || f.is_two_sided()));
                 }
             }
