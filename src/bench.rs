@@ -482,6 +482,33 @@ pub struct StageReport {
     pub iterations: usize,
     /// Why the solve failed, if it did.
     pub solve_error: Option<String>,
+    /// CPU seconds of the whole run, every stage and thread
+    /// ([`crate::cluster::cpu_seconds`]).
+    pub cpu_seconds: f64,
+    /// CPU seconds of the form-factor stage (rows and assembly).
+    pub factor_cpu_seconds: f64,
+    /// Seconds inside Embree's queries, summed over threads, timed around each call
+    /// ([`Visibility::time_queries`]).
+    pub query_seconds: f64,
+    /// Wall seconds of the form-factor stage times the threads that ran it.
+    pub factor_thread_seconds: f64,
+}
+
+impl StageReport {
+    /// Share of the form-factor stage's thread time spent inside Embree's calls: the
+    /// calls' wall time over the stage's wall time times its threads. Both are wall
+    /// times, so time the system gives to other processes counts on both sides in
+    /// proportion (a ratio of wall time in the calls to CPU time would not be).
+    pub fn embree_share_of_factors(&self) -> f64 {
+        self.query_seconds / self.factor_thread_seconds.max(1e-12)
+    }
+
+    /// Share of the whole run's CPU time spent inside Embree's calls: the stage's share
+    /// ([`StageReport::embree_share_of_factors`]) of the stage's CPU time, over the CPU
+    /// time of every stage.
+    pub fn embree_share_of_bake(&self) -> f64 {
+        self.embree_share_of_factors() * self.factor_cpu_seconds / self.cpu_seconds.max(1e-12)
+    }
 }
 
 impl StageReport {
@@ -510,6 +537,7 @@ pub fn stages(
     seed: u64,
     out_dir: &Path,
 ) -> Result<StageReport> {
+    let cpu0 = crate::cluster::cpu_seconds();
     let mut st = Stages(Vec::new());
     let scene = st.run("load", || Scene::load(scene))?;
     let patches = st.run("mesh", || PatchSet::build(&scene, resolution))?;
@@ -521,7 +549,15 @@ pub fn stages(
         seed,
     };
     reset_peak();
+    vis.time_queries(true);
+    let ff_cpu0 = crate::cluster::cpu_seconds();
+    let ff_wall = Instant::now();
     let (ff, split) = formfactor::compute_timed(&ctx, est.as_ref(), &|_| {});
+    let factor_thread_seconds =
+        ff_wall.elapsed().as_secs_f64() * rayon::current_num_threads() as f64;
+    let factor_cpu_seconds = crate::cluster::cpu_seconds() - ff_cpu0;
+    let query_seconds = vis.query_seconds();
+    vis.time_queries(false);
     let peak = pipeline::peak_memory();
     st.0.push(StageLine {
         stage: "form factors",
@@ -568,6 +604,10 @@ pub fn stages(
         stages: st.0,
         iterations,
         solve_error,
+        cpu_seconds: crate::cluster::cpu_seconds() - cpu0,
+        factor_cpu_seconds,
+        query_seconds,
+        factor_thread_seconds,
     })
 }
 
@@ -586,7 +626,11 @@ pub fn format_stages(reports: &[StageReport]) -> String {
     for s in &first.stages {
         let _ = write!(o, " {:>22}", format!("{} s / MiB", s.stage));
     }
-    let _ = writeln!(o, " {:>9}", "B/factor");
+    let _ = writeln!(
+        o,
+        " {:>9} {:>10} {:>11}",
+        "B/factor", "Embree/ff", "Embree/bake"
+    );
     for r in reports {
         let _ = write!(
             o,
@@ -600,7 +644,13 @@ pub fn format_stages(reports: &[StageReport]) -> String {
                 format!("{:.3} / {:.0}", s.seconds, s.peak as f64 / 1048576.0)
             );
         }
-        let _ = writeln!(o, " {:>9.2}", r.bytes_per_factor);
+        let _ = writeln!(
+            o,
+            " {:>9.2} {:>10.3} {:>11.3}",
+            r.bytes_per_factor,
+            r.embree_share_of_factors(),
+            r.embree_share_of_bake()
+        );
         if let Some(e) = &r.solve_error {
             let _ = writeln!(
                 o,
@@ -690,6 +740,12 @@ pub fn stages_json(reports: &[StageReport], machine: &Machine) -> String {
                 "bytes_per_factor": r.bytes_per_factor,
                 "row_pointer_bytes": r.row_pointer_bytes,
                 "solve_error": r.solve_error,
+                "cpu_seconds": r.cpu_seconds,
+                "form_factor_cpu_seconds": r.factor_cpu_seconds,
+                "embree_query_seconds": r.query_seconds,
+                "form_factor_thread_seconds": r.factor_thread_seconds,
+                "embree_share_of_form_factors": r.embree_share_of_factors(),
+                "embree_share_of_bake": r.embree_share_of_bake(),
                 "stages": r.stages.iter().map(|s| serde_json::json!({
                     "stage": s.stage,
                     "seconds": s.seconds,
@@ -901,7 +957,12 @@ pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
                 })
                 .collect()
         })?;
-        print("time and peak memory per stage (one run each):");
+        print(
+            "time and peak memory per stage (one run each); Embree/ff and Embree/bake: the \
+             time inside Embree's calls (timed around each, summed over threads) over the \
+             form-factor stage's thread time, and that share of its CPU time over the whole \
+             run's CPU time:",
+        );
         print(&format_stages(&reports));
         std::fs::create_dir_all(&cfg.out_dir).map_err(|e| Error::io(&cfg.out_dir, e))?;
         let json = cfg.out_dir.join("bench.json");
@@ -1084,12 +1145,27 @@ mod tests {
             }],
             iterations: 3,
             solve_error: None,
+            cpu_seconds: 1.0,
+            factor_cpu_seconds: 0.8,
+            query_seconds: 0.6,
+            factor_thread_seconds: 1.2,
         };
         let v: serde_json::Value =
             serde_json::from_str(&stages_json(std::slice::from_ref(&r), &m)).unwrap();
         assert_eq!(v["machine"]["threads"], 2);
         assert_eq!(v["cases"][0]["stages"][0]["stage"], "form factors");
         assert_eq!(v["cases"][0]["factors"], 30);
+        // 0.6 s in Embree over 1.2 thread-seconds of the stage; the stage's 0.8 CPU-s of
+        // the run's 1.0.
+        assert!(
+            (v["cases"][0]["embree_share_of_form_factors"]
+                .as_f64()
+                .unwrap()
+                - 0.5)
+                .abs()
+                < 1e-12
+        );
+        assert!((v["cases"][0]["embree_share_of_bake"].as_f64().unwrap() - 0.4).abs() < 1e-12);
         // The plain bench's table: ratios and stages, with the machine.
         let line = RatioLine {
             estimator: "hemisphere".into(),
@@ -1118,6 +1194,36 @@ mod tests {
             .map(|&x| (x, 3.0 * x * x))
             .collect();
         assert!((loglog_slope(&pts) - 2.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn query_time_is_counted_only_while_timing_is_on() {
+        let scene = Scene::load("cornell").unwrap();
+        let patches = PatchSet::build(&scene, Resolution::Patches(60)).unwrap();
+        let vis = Visibility::new(&patches).unwrap();
+        let ctx = Context {
+            patches: &patches,
+            vis: &vis,
+            seed: 1,
+        };
+        let est = EstimatorChoice::Hemisphere {
+            strata: 8,
+            replicates: 2,
+        }
+        .build();
+        formfactor::compute(&ctx, est.as_ref(), &|_| {});
+        assert_eq!(vis.query_seconds(), 0.0);
+        vis.time_queries(true);
+        let cpu = crate::cluster::cpu_seconds();
+        formfactor::compute(&ctx, est.as_ref(), &|_| {});
+        let (q, cpu) = (vis.query_seconds(), crate::cluster::cpu_seconds() - cpu);
+        vis.time_queries(false);
+        assert!(q > 0.0 && cpu > 0.0, "query {q} s, cpu {cpu} s");
+        assert_eq!(
+            vis.query_seconds(),
+            0.0,
+            "turning timing off resets the total"
+        );
     }
 
     #[test]

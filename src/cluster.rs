@@ -240,11 +240,31 @@ pub fn launched_size() -> Option<usize> {
         .find_map(|v| std::env::var(v).ok()?.trim().parse().ok())
 }
 
-/// CPU seconds of this process so far (user + system, every thread), from
-/// `/proc/self/stat` (fields 14 and 15, in clock ticks of 1/100 s); 0 where there is no
-/// `/proc`. A rank's CPU time, unlike its wall time, does not count the time the system
-/// gave to other ranks sharing its cores.
+/// CPU seconds of this process so far (every thread): the sum of its threads' run times
+/// in `/proc/self/task/*/schedstat` (nanoseconds; the kernel's scheduler accounting), or
+/// where that is missing, user + system time from `/proc/self/stat` (fields 14 and 15, in
+/// clock ticks of 1/100 s); 0 where there is no `/proc`. A rank's CPU time, unlike its wall
+/// time, does not count the time the system gave to other ranks sharing its cores. Threads
+/// that have exited no longer count in the first form: take differences across work done
+/// by a pool that outlives it (rayon's).
 pub fn cpu_seconds() -> f64 {
+    schedstat_seconds().unwrap_or_else(stat_seconds)
+}
+
+fn schedstat_seconds() -> Option<f64> {
+    let mut ns: u64 = 0;
+    for task in std::fs::read_dir("/proc/self/task").ok()? {
+        let path = task.ok()?.path().join("schedstat");
+        // A thread may exit between the listing and the read: it no longer counts.
+        let Ok(text) = std::fs::read_to_string(&path) else {
+            continue;
+        };
+        ns += text.split_whitespace().next()?.parse::<u64>().ok()?;
+    }
+    Some(ns as f64 * 1e-9)
+}
+
+fn stat_seconds() -> f64 {
     std::fs::read_to_string("/proc/self/stat")
         .ok()
         .and_then(|s| {
