@@ -215,7 +215,7 @@ fn a_stored_row_over_one_beyond_its_bar_is_refused_unless_repaired() {
     // Row 7 scaled to sum 1 + 12 of its standard errors (at least 1.01), every entry
     // still in [0, 1]: a valid, hashed folder whose physics is wrong.
     let (lo, hi) = (ff.f.indptr().index(7), ff.f.indptr().index(8));
-    let (sum, se) = (ff.row_sum(7), ff.row_sum_stderr(7));
+    let (sum, se) = (ff.row_sum(7), ff.row_sum_bar(7).magnitude());
     let target = 1.0 + (12.0 * se).max(0.01);
     assert!(sum > 0.5 && target < 1.5, "row 7: {sum} ± {se}");
     for v in &mut ff.f.data_mut()[lo..hi] {
