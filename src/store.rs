@@ -200,15 +200,26 @@ fn write_mtx<V: std::fmt::LowerExp + Sync>(
     path: &Path,
     ff: &FormFactors,
     values: &[V],
+    what: &str,
 ) -> Result<()> {
-    write_mtx_in(path, ff, values, PIECE, PIECES)
+    write_mtx_in(path, ff, values, what, PIECE, PIECES)
 }
+
+/// The comment line of each matrix file: what its values are and how they add.
+const F_COMMENT: &str = "F(i, j): fraction of the energy leaving patch i that reaches patch j";
+/// See [`F_COMMENT`].
+const SE_COMMENT: &str = "standard error of the random part of each F(i, j) (0 where \
+                          its error is deterministic: see bound); add in quadrature over sums";
+/// See [`F_COMMENT`].
+const BOUND_COMMENT: &str = "bound on the deterministic error of each F(i, j) (0 where \
+                             its error is random: see stderr); add linearly over sums";
 
 /// [`write_mtx`] with tasks of about `piece` entries, `pieces` of them at a time.
 fn write_mtx_in<V: std::fmt::LowerExp + Sync>(
     path: &Path,
     ff: &FormFactors,
     values: &[V],
+    what: &str,
     piece: usize,
     pieces_at_once: usize,
 ) -> Result<()> {
@@ -225,6 +236,7 @@ fn write_mtx_in<V: std::fmt::LowerExp + Sync>(
             ff.estimator
         )
         .map_err(io)?;
+        writeln!(w, "% {what}").map_err(io)?;
         writeln!(w, "{n} {n} {}", ff.f.nnz()).map_err(io)?;
         // The matrix is owned: its row pointers start at 0 and index `indices` and `values`.
         let ptr = ff.f.indptr();
@@ -333,9 +345,9 @@ fn write_files(
         .unzip();
     match format {
         Format::Mtx | Format::Auto => {
-            write_mtx(&dir.join(f_name), ff, ff.f.data())?;
-            write_mtx(&dir.join(se_name), ff, &se)?;
-            write_mtx(&dir.join(bound_name), ff, &bound)?;
+            write_mtx(&dir.join(f_name), ff, ff.f.data(), F_COMMENT)?;
+            write_mtx(&dir.join(se_name), ff, &se, SE_COMMENT)?;
+            write_mtx(&dir.join(bound_name), ff, &bound, BOUND_COMMENT)?;
         }
         Format::Npz | Format::NpzDeflated => {
             let compression = if format == Format::Npz {
@@ -1083,7 +1095,7 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("F.mtx");
         for (piece, at_once) in [(PIECE, PIECES), (1, 1), (3, 2), (4, 64)] {
-            write_mtx_in(&path, &ff, ff.f.data(), piece, at_once).unwrap();
+            write_mtx_in(&path, &ff, ff.f.data(), F_COMMENT, piece, at_once).unwrap();
             let text = std::fs::read_to_string(&path).unwrap();
             let body: String = text.lines().skip(3).map(|l| format!("{l}\n")).collect();
             assert_eq!(body, want, "piece {piece}, {at_once} at once");
