@@ -358,6 +358,11 @@ pub struct FormFactors {
     /// Independent replicates behind each standard error (0 when not known: the checks
     /// then assume the fewest, 2).
     pub replicates: usize,
+    /// The standard error of any entry that is not stored, and of the sum of a row's
+    /// unstored entries: 0 for estimators that decide every pair; for hemisphere shooting
+    /// the bar of a fraction no ray hit ([`crate::formfactor::Estimator::unresolved`]).
+    /// One-sided: the true value is `>= 0`, the estimate 0.
+    pub unresolved: f64,
 }
 
 /// Form factors at least this large count as significant for the reciprocity figure.
@@ -577,6 +582,7 @@ impl CsrBuilder {
             estimator,
             seed,
             replicates: 0,
+            unresolved: 0.0,
         }
     }
 }
@@ -655,16 +661,16 @@ impl FormFactors {
         self.f.get(i, j).copied().unwrap_or(0.0)
     }
 
-    /// The bar of `F[i, j]` (0 when not stored).
+    /// The bar of `F[i, j]` (for an entry not stored, [`FormFactors::unresolved`]).
     pub fn bar(&self, i: usize, j: usize) -> Bar {
         self.f
             .nnz_index(i, j)
             .map(|k| Bar::of(self.se[k.0]))
-            .unwrap_or(Bar::ZERO)
+            .unwrap_or(Bar::se(self.unresolved))
     }
 
-    /// Standard error of `F[i, j]` (0 when not stored, or when its error is a bound:
-    /// [`FormFactors::bar`]).
+    /// Standard error of `F[i, j]` ([`FormFactors::unresolved`] when not stored; 0 when its
+    /// error is a bound: [`FormFactors::bar`]).
     pub fn stderr(&self, i: usize, j: usize) -> f64 {
         self.bar(i, j).se
     }

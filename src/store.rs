@@ -156,6 +156,10 @@ pub struct Provenance {
     /// before it was recorded: not known).
     #[serde(default)]
     pub replicates: usize,
+    /// The bar of every entry not stored ([`FormFactors::unresolved`]: hemisphere
+    /// shooting's patches no ray hit; 0, or absent in older folders, otherwise).
+    #[serde(default)]
+    pub unresolved: f64,
     /// SHA-256 (lower-case hex) of the matrix files ([`Format::files`]), `patches.csv`
     /// and of [`OBJECT_TABLES`] when written, by name.
     pub sha256: BTreeMap<String, String>,
@@ -440,6 +444,7 @@ fn write_files(
         max_edge: patches.max_edge,
         repair: format!("{repair:?}"),
         replicates: ff.replicates,
+        unresolved: ff.unresolved,
         sha256,
         objects_skipped,
     };
@@ -964,6 +969,7 @@ pub fn read_located(dir: &Path, patches: &PatchSet) -> Result<(FormFactors, Path
         estimator: prov.estimator,
         seed: prov.seed,
         replicates: prov.replicates,
+        unresolved: prov.unresolved,
     };
     Ok((ff, f_path))
 }
