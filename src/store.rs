@@ -1103,10 +1103,11 @@ mod tests {
         for (piece, at_once) in [(PIECE, PIECES), (1, 1), (3, 2), (4, 64)] {
             write_mtx_in(&path, &ff, ff.f.data(), F_COMMENT, piece, at_once).unwrap();
             let text = std::fs::read_to_string(&path).unwrap();
-            let body: String = text.lines().skip(3).map(|l| format!("{l}\n")).collect();
+            let body: String = text.lines().skip(4).map(|l| format!("{l}\n")).collect();
             assert_eq!(body, want, "piece {piece}, {at_once} at once");
+            assert_eq!(text.lines().nth(2), Some(format!("% {F_COMMENT}").as_str()));
             assert_eq!(
-                text.lines().nth(2),
+                text.lines().nth(3),
                 Some(format!("{n} {n} {}", ff.f.nnz()).as_str())
             );
         }
