@@ -285,8 +285,16 @@ pub struct Report {
     pub seconds: f64,
 }
 
-/// Configurations on which the calibration is measured.
-pub const CALIBRATION_CONFIGS: [&str; 4] = ["far", "near", "occluded", "adjacent"];
+/// Configurations on which the calibration is measured: all seven.
+pub const CALIBRATION_CONFIGS: [&str; 7] = [
+    "far",
+    "near",
+    "occluded",
+    "adjacent",
+    "grazing",
+    "small-large",
+    "shelf",
+];
 
 /// Runs the convergence sweep: every configuration, estimator, budget and seed.
 pub fn sweep(prepared: &[Prepared], budgets: &[usize], seeds: u64) -> Vec<Run> {
