@@ -1356,7 +1356,7 @@ mod tests {
         // A row 10 of its standard errors over 1 (every row of the matrix is) is caught.
         let r = refused(200, 25, 25, 8, 10.0, 12);
         assert!(r >= 190, "only {r} of 200 caught");
-        // Exact rows: any excess beyond the refusal floor is refused.
+        // Exact rows (bar 0): any excess beyond rounding is refused.
         let rows = vec![
             vec![
                 Entry {

@@ -14,7 +14,7 @@
 //!
 //! ## Standard errors
 //! The sum `S_IJ = sum A_i F_ij` is propagated from the per-entry standard errors `s_ij`
-//! (`stderr.mtx`) as the row sums are ([`crate::matrix::FormFactors::row_sum_stderr`]),
+//! (`stderr.mtx`) as the row sums are ([`crate::matrix::FormFactors::row_sum_bar`]),
 //! entries independent, added in quadrature, with one exception:
 //!
 //! - between two objects (`I != J`): `se(S_IJ)² = sum (A_i s_ij)²`;
