@@ -1061,6 +1061,14 @@ fn dispatch(cli: &Cli, matches: &clap::ArgMatches, cluster: &dyn Cluster) -> Res
                 d.min_row_sum, d.max_row_sum, d.reciprocity,
             )?;
             writeln!(o, "bounds: {}", s.repair.before.summary())?;
+            if p.unresolved > 0.0 {
+                writeln!(
+                    o,
+                    "pairs no ray hit: F = 0 ± {:.1e} (s.e., one-sided; also the bar of each \
+                     row's unhit mass)",
+                    p.unresolved
+                )?;
+            }
             if s.repair.repair != Repair::None {
                 writeln!(
                     o,

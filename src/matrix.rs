@@ -4,6 +4,12 @@
 //! Properties checked (radiosidade.md, "Teorema da Reciprocidade"): in a closed
 //! environment every row sums to 1, and `A_i F_ij = A_j F_ji`.
 //!
+//! Error bars ([`Bar`]): every stored factor carries one bar, either a standard error (the
+//! random part of an estimate: replicates' spread, ray counts) or a deterministic bound (a
+//! quadrature's checked error plus rounding). They combine differently in sums of factors
+//! (row sums, surface sums): standard errors of independent estimates in quadrature,
+//! bounds linearly (the triangle inequality), and they are reported apart.
+//!
 //! Repair ([`repair_row_sums`]): a Monte Carlo row may sum above 1 by noise; when
 //! `rho_i * sum_j F_ij >= 1` somewhere, the bound that guarantees a bounded, convergent solve
 //! is lost (Cohen and Wallace 1993, §5.3), so the pipeline scales those rows to sum to 1.
@@ -11,15 +17,185 @@
 use rayon::prelude::*;
 use sprs::{CsMatI, TriMatI};
 
-/// One estimated entry of a row: `F_ij` and its standard error.
+/// One estimated entry of a row: `F_ij` and its error bar.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Entry {
     /// Column (receiving patch).
     pub j: u32,
     /// Estimated form factor.
     pub f: f64,
-    /// Standard error of the estimate (0 when exact).
+    /// The error bar in its stored form ([`Bar::stored`]): a standard error (sign bit
+    /// clear; 0 when exact) or, with the sign bit set, a deterministic bound of magnitude
+    /// `|se|`. Read it through [`Bar::of`].
     pub se: f64,
+}
+
+impl Entry {
+    /// An entry whose error is deterministic, bounded by `bound` (>= 0).
+    pub fn bounded(j: u32, f: f64, bound: f64) -> Entry {
+        Entry {
+            j,
+            f,
+            se: Bar::bound(bound).stored(),
+        }
+    }
+
+    /// The entry's bar.
+    pub fn bar(&self) -> Bar {
+        Bar::of(self.se)
+    }
+}
+
+/// The error bar of a factor, or of a sum of factors: a standard error `se` for the random
+/// part and a bound `bound` for the deterministic part.
+///
+/// - A **standard error** belongs to a random estimate (replicates, ray counts); errors of
+///   independent estimates add in quadrature, `se(Σ x_k)² = Σ se(x_k)²`.
+/// - A **bound** belongs to a deterministic computation (the semi-analytic estimator's
+///   quadrature of unoccluded pairs: the a-posteriori check's error estimate plus a rounding
+///   term, [`crate::formfactor::exact`]); its error has no distribution and no reason to
+///   cancel, so bounds add linearly, `|Σ e_k| <= Σ |e_k|` (the triangle inequality), and are
+///   not divided by a count of replicates.
+///
+/// A value is within `k` bars of the truth when `|x - truth| <= k se + bound`
+/// ([`Bar::allowance`]): `k` multiplies only the random part.
+///
+/// Stored (one `f32` per factor in [`FormFactors::se`], one `f64` in [`Entry::se`]) a bar
+/// holds one part, told by the sign bit: clear, a standard error; set, a bound of the
+/// value's magnitude. On disk they are two files of the same pattern, `stderr.mtx` and
+/// `bound.mtx` ([`crate::store`]). A bar with both parts (a sum, or a repair mixing a
+/// bounded entry with a random one) is stored as the standard error `hypot(se, bound)`,
+/// which allows at least as much as `k se + bound` whenever `k >= 1`.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Bar {
+    /// Standard error of the random part.
+    pub se: f64,
+    /// Bound on the absolute deterministic error.
+    pub bound: f64,
+}
+
+impl Bar {
+    /// No error (an exact value, or one whose error is not known: the hemicube's).
+    pub const ZERO: Bar = Bar {
+        se: 0.0,
+        bound: 0.0,
+    };
+
+    /// A standard error alone.
+    pub fn se(se: f64) -> Bar {
+        Bar { se, bound: 0.0 }
+    }
+
+    /// A bound alone.
+    pub fn bound(bound: f64) -> Bar {
+        Bar { se: 0.0, bound }
+    }
+
+    /// Reads a stored bar (sign bit set: a bound).
+    pub fn of(stored: impl Into<f64>) -> Bar {
+        let s: f64 = stored.into();
+        if s.is_sign_negative() {
+            Bar::bound(-s)
+        } else {
+            Bar::se(s)
+        }
+    }
+
+    /// The stored form: `se` (sign bit clear), `-bound` (sign bit set), or for a bar with
+    /// both parts the standard error `hypot(se, bound)`.
+    pub fn stored(self) -> f64 {
+        if self.bound == 0.0 {
+            self.se
+        } else if self.se == 0.0 {
+            -self.bound
+        } else {
+            self.se.hypot(self.bound)
+        }
+    }
+
+    /// The stored form as `f32` (a standard error to nearest; a bound rounded up in
+    /// magnitude, so that it stays a bound).
+    pub fn stored_f32(self) -> f32 {
+        let s = self.stored();
+        let r = s as f32;
+        if s.is_sign_negative() && f64::from(r).abs() < s.abs() && r.is_finite() {
+            // One step away from zero.
+            f32::from_bits(r.to_bits() + 1)
+        } else {
+            r
+        }
+    }
+
+    /// The bar of the sum of two independent errors: standard errors in quadrature, bounds
+    /// linearly.
+    pub fn plus(self, o: Bar) -> Bar {
+        Bar {
+            se: self.se.hypot(o.se),
+            bound: self.bound + o.bound,
+        }
+    }
+
+    /// The bar of `s` times the value (`|s|` scales both parts).
+    pub fn times(self, s: f64) -> Bar {
+        Bar {
+            se: self.se * s.abs(),
+            bound: self.bound * s.abs(),
+        }
+    }
+
+    /// How far a value may be from the truth at `k` standard errors: `k se + bound`.
+    pub fn allowance(self, k: f64) -> f64 {
+        k * self.se + self.bound
+    }
+
+    /// One number for weights and for readers that know a single bar:
+    /// `hypot(se, bound)` (as [`Bar::stored`] keeps a bar with both parts).
+    pub fn magnitude(self) -> f64 {
+        self.se.hypot(self.bound)
+    }
+
+    /// Each part's larger (for "the largest bar" of a set).
+    pub fn max(self, o: Bar) -> Bar {
+        Bar {
+            se: self.se.max(o.se),
+            bound: self.bound.max(o.bound),
+        }
+    }
+
+    /// True when neither part is NaN, infinite or negative.
+    pub fn is_valid(self) -> bool {
+        self.se.is_finite() && self.bound.is_finite() && self.se >= 0.0 && self.bound >= 0.0
+    }
+}
+
+/// `± 1.2e-3 (s.e.)`, `± 4.0e-9 (bound)`, `± 1.2e-3 (s.e.) + 4.0e-9 (bound)`, or `± 0`: the
+/// one way summaries print a bar, saying which part is which.
+impl std::fmt::Display for Bar {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match (self.se > 0.0, self.bound > 0.0) {
+            (false, false) => write!(f, "± 0"),
+            (true, false) => write!(f, "± {:.1e} (s.e.)", self.se),
+            (false, true) => write!(f, "± {:.1e} (bound)", self.bound),
+            (true, true) => write!(f, "± {:.1e} (s.e.) + {:.1e} (bound)", self.se, self.bound),
+        }
+    }
+}
+
+impl std::iter::Sum for Bar {
+    fn sum<I: Iterator<Item = Bar>>(it: I) -> Bar {
+        let (v, b) = it.fold((0.0, 0.0), |(v, b), x| (v + x.se * x.se, b + x.bound));
+        Bar {
+            se: v.sqrt(),
+            bound: b,
+        }
+    }
+}
+
+/// The bar of the sum of stored bars `bars` (one row's, or any set of independent
+/// entries'): standard errors in quadrature, bounds linearly. The one definition every
+/// row-sum and surface-sum check uses.
+pub fn sum_bar(bars: &[f32]) -> Bar {
+    bars.iter().map(|&s| Bar::of(s)).sum()
 }
 
 /// A row being computed, reused between rows on the same thread.
@@ -31,25 +207,20 @@ pub struct Row {
     pub rays: u64,
 }
 
-/// True when a row sum `sum` with standard error `se` is over 1 by more than `k` standard
-/// errors and by more than rounding (`1e-9`): the one definition of a row "over one" that
-/// the diagnostics ([`Diagnostics::rows_over_one`], `k = 3`) and the repair's bounds
-/// ([`crate::repair::Bounds::significant`]) use. A physical row sums to at most 1.
-pub fn over_one(sum: f64, se: f64, k: f64) -> bool {
-    sum > 1.0 + (k * se).max(1e-9)
+/// True when a row sum `sum` with the bar `bar` ([`sum_bar`] of its entries) is over 1 by
+/// more than `k` standard errors plus its bound ([`Bar::allowance`]), and by more than
+/// `1e-9` (rounding of rows whose bar is 0, such as the hemicube's): the one definition of
+/// a row "over one" that the diagnostics ([`Diagnostics::rows_over_one`], `k = 3`), the
+/// repair's bounds ([`crate::repair::Bounds::significant`]), the refusal
+/// ([`FormFactors::row_over_one_beyond_chance`]) and the thermal and hierarchy checks use.
+/// A physical row sums to at most 1.
+pub fn over_one(sum: f64, bar: Bar, k: f64) -> bool {
+    sum > 1.0 + bar.allowance(k).max(1e-9)
 }
 
 /// Family-wise false-alarm rate of [`FormFactors::row_over_one_beyond_chance`]: an honest
 /// matrix is refused with at most this probability, whatever its size.
 pub const ROW_ALARM: f64 = 1e-3;
-
-/// Smallest excess over 1 for which [`FormFactors::row_over_one_beyond_chance`] refuses a
-/// row, however small its bar: the semi-analytic estimator's default tolerance (1e-6
-/// relative per factor, so a row of its factors is good to about 1e-6). Its bars are
-/// quadrature error estimates, not standard errors, and a row 1 + 4e-8 with a bar of 7e-9
-/// is within what it promises, not evidence of a defect; nor does an excess this small
-/// change a solve.
-pub const ROW_REFUSAL_FLOOR: f64 = 1e-6;
 
 /// A row found over 1 by more than its bar allows.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -58,12 +229,14 @@ pub struct RowExcess {
     pub row: usize,
     /// Its sum.
     pub sum: f64,
-    /// Standard error of the sum.
+    /// Standard error of the sum (random part).
     pub se: f64,
+    /// Bound of the sum's deterministic part (bounds added linearly).
+    pub bound: f64,
     /// Degrees of freedom of that standard error (Welch–Satterthwaite; infinite when every
     /// entry is exact).
     pub dof: f64,
-    /// The multiple of `se` the sum was allowed above 1.
+    /// The multiple of `se` the sum was allowed above 1 (besides `bound`).
     pub k: f64,
 }
 
@@ -131,14 +304,14 @@ pub fn repair_rows_from(f: &Csr, rho: &[[f64; 3]], lo: usize) -> Option<(Csr, Ro
     Some((g, rep))
 }
 
-/// Sorts a row's entries by column and merges duplicates (adding values, and standard
-/// errors in quadrature; the built-in estimators never make duplicates).
+/// Sorts a row's entries by column and merges duplicates (adding values, and bars as
+/// [`Bar::plus`]; the built-in estimators never make duplicates).
 pub fn sort_row(row: &mut Vec<Entry>) {
     row.sort_unstable_by_key(|e| e.j);
     row.dedup_by(|b, a| {
         if a.j == b.j {
             a.f += b.f;
-            a.se = (a.se * a.se + b.se * b.se).sqrt();
+            a.se = a.bar().plus(b.bar()).stored();
             true
         } else {
             false
@@ -185,6 +358,11 @@ pub struct FormFactors {
     /// Independent replicates behind each standard error (0 when not known: the checks
     /// then assume the fewest, 2).
     pub replicates: usize,
+    /// The standard error of any entry that is not stored, and of the sum of a row's
+    /// unstored entries: 0 for estimators that decide every pair; for hemisphere shooting
+    /// the bar of a fraction no ray hit ([`crate::formfactor::Estimator::unresolved`]).
+    /// One-sided: the true value is `>= 0`, the estimate 0.
+    pub unresolved: f64,
 }
 
 /// Form factors at least this large count as significant for the reciprocity figure.
@@ -263,7 +441,7 @@ impl CsrBuilder {
         for e in row.iter() {
             self.indices.push(e.j);
             self.data.push(e.f);
-            self.se.push(e.se as f32);
+            self.se.push(Bar::of(e.se).stored_f32());
         }
         self.indptr.push(self.indices.len());
     }
@@ -300,7 +478,7 @@ impl CsrBuilder {
             for (k, e) in r.iter().enumerate() {
                 ix[k].write(e.j);
                 dx[k].write(e.f);
-                sx[k].write(e.se as f32);
+                sx[k].write(Bar::of(e.se).stored_f32());
             }
         });
         // SAFETY: the `nnz` slots after `base` of each array were all written just above
@@ -365,14 +543,14 @@ impl CsrBuilder {
                     let j = e.j as usize;
                     let s = area[i] / area[j];
                     let p = &mut cursor[j - j0];
-                    (ix[*p], dx[*p], sx[*p]) = (i as u32, e.f * s, (e.se * s) as f32);
+                    (ix[*p], dx[*p], sx[*p]) = (i as u32, e.f * s, Bar::of(e.se * s).stored_f32());
                     *p += 1;
                 }
             }
             // Then each row's own upper part.
             for (j, p) in (j0..j1).zip(cursor) {
                 for (k, e) in rows[j].iter().enumerate() {
-                    (ix[p + k], dx[p + k], sx[p + k]) = (e.j, e.f, e.se as f32);
+                    (ix[p + k], dx[p + k], sx[p + k]) = (e.j, e.f, Bar::of(e.se).stored_f32());
                 }
             }
         });
@@ -404,6 +582,7 @@ impl CsrBuilder {
             estimator,
             seed,
             replicates: 0,
+            unresolved: 0.0,
         }
     }
 }
@@ -421,11 +600,12 @@ pub struct Diagnostics {
     pub reciprocity: f64,
     /// The same, over pairs where `F_ij` or `F_ji` is at least [`SIGNIFICANT`].
     pub reciprocity_significant: f64,
-    /// Fraction of stored pairs whose reciprocity gap exceeds 3 combined standard errors.
+    /// Fraction of stored pairs whose reciprocity gap exceeds 3 combined bars.
     pub reciprocity_beyond_3se: f64,
     /// Rows with no stored entry (patches that see nothing, e.g. hidden under a block).
     pub empty_rows: usize,
-    /// Rows whose sum exceeds 1 by more than 3 of its standard errors (and 1e-9).
+    /// Rows whose sum exceeds 1 by more than 3 of its standard errors plus its bound
+    /// ([`over_one`]).
     pub rows_over_one: usize,
     /// Entries outside [0, 1] or not finite.
     pub out_of_range: usize,
@@ -481,20 +661,26 @@ impl FormFactors {
         self.f.get(i, j).copied().unwrap_or(0.0)
     }
 
-    /// Standard error of `F[i, j]` (0 when not stored).
-    pub fn stderr(&self, i: usize, j: usize) -> f64 {
+    /// The bar of `F[i, j]` (for an entry not stored, [`FormFactors::unresolved`]).
+    pub fn bar(&self, i: usize, j: usize) -> Bar {
         self.f
             .nnz_index(i, j)
-            .map(|k| f64::from(self.se[k.0]))
-            .unwrap_or(0.0)
+            .map(|k| Bar::of(self.se[k.0]))
+            .unwrap_or(Bar::se(self.unresolved))
     }
 
-    /// The stored entries of row `i`: `(j, F_ij, standard error)`.
-    pub fn row(&self, i: usize) -> impl Iterator<Item = (usize, f64, f64)> + '_ {
+    /// Standard error of `F[i, j]` ([`FormFactors::unresolved`] when not stored; 0 when its
+    /// error is a bound: [`FormFactors::bar`]).
+    pub fn stderr(&self, i: usize, j: usize) -> f64 {
+        self.bar(i, j).se
+    }
+
+    /// The stored entries of row `i`: `(j, F_ij, bar)`.
+    pub fn row(&self, i: usize) -> impl Iterator<Item = (usize, f64, Bar)> + '_ {
         let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));
         (lo..hi).map(move |k| {
             let j = self.f.indices()[k] as usize;
-            (j, self.f.data()[k], f64::from(self.se[k]))
+            (j, self.f.data()[k], Bar::of(self.se[k]))
         })
     }
 
@@ -513,34 +699,38 @@ impl FormFactors {
     /// error has Welch–Satterthwaite degrees of freedom `ν = (R - 1) (Σ s²)² / Σ s⁴` for
     /// `R` replicates (Satterthwaite 1946), and `(sum - 1) / se` of an honest row is at
     /// most Student-t with `ν` degrees of freedom. With `n` rows, each is allowed up to
-    /// the t quantile of tail `ROW_ALARM / n` (Bonferroni), and by more than
-    /// [`ROW_REFUSAL_FLOOR`]. Rows sharing rays (hemisphere shooting) are negatively
-    /// correlated within the row, which only makes the test more lenient.
+    /// the t quantile of tail `ROW_ALARM / n` (Bonferroni) times its standard error, plus
+    /// the linear sum of its entries' bounds ([`over_one`]; bounds hold with certainty, so
+    /// they take no share of the alarm rate). Rows sharing rays (hemisphere shooting) are
+    /// negatively correlated within the row, which only makes the test more lenient.
     pub fn row_over_one_beyond_chance(&self) -> Option<RowExcess> {
         let n = self.len();
         let per_entry = (self.replicates.max(2) - 1) as f64;
         let tail = ROW_ALARM / n.max(1) as f64;
         (0..n).find_map(|i| {
             let sum = self.row_sum(i);
-            if sum <= 1.0 + ROW_REFUSAL_FLOOR {
+            if sum <= 1.0 {
                 return None;
             }
             let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));
-            let (s2, s4) = self.se[lo..hi]
-                .iter()
-                .map(|&s| f64::from(s))
-                .fold((0.0, 0.0), |(a, b), s| (a + s * s, b + s.powi(4)));
-            let se = s2.sqrt();
+            let bar = sum_bar(&self.se[lo..hi]);
+            let s4: f64 = self.se[lo..hi].iter().map(|&s| Bar::of(s).se.powi(4)).sum();
+            let s2 = bar.se * bar.se;
             let dof = if s4 > 0.0 {
                 per_entry * s2 * s2 / s4
             } else {
                 f64::INFINITY
             };
-            let k = if se > 0.0 { t_quantile(tail, dof) } else { 0.0 };
-            over_one(sum, se, k).then_some(RowExcess {
+            let k = if bar.se > 0.0 {
+                t_quantile(tail, dof)
+            } else {
+                0.0
+            };
+            over_one(sum, bar, k).then_some(RowExcess {
                 row: i,
                 sum,
-                se,
+                se: bar.se,
+                bound: bar.bound,
                 dof,
                 k,
             })
@@ -553,14 +743,11 @@ impl FormFactors {
         self.f.indptr().index(i) == self.f.indptr().index(i + 1)
     }
 
-    /// Standard error of the sum of row `i` (entries' errors added in quadrature).
-    pub fn row_sum_stderr(&self, i: usize) -> f64 {
+    /// The bar of the sum of row `i` ([`sum_bar`]: standard errors in quadrature, bounds
+    /// linearly).
+    pub fn row_sum_bar(&self, i: usize) -> Bar {
         let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));
-        self.se[lo..hi]
-            .iter()
-            .map(|&s| f64::from(s) * f64::from(s))
-            .sum::<f64>()
-            .sqrt()
+        sum_bar(&self.se[lo..hi])
     }
 
     /// Row sums, reciprocity and range checks.
@@ -625,22 +812,17 @@ fn row_diagnostics(
 ) -> Diagnostics {
     // `+ 0.0`: the sum of no terms is -0.0, printed `-0.00000` for an empty row.
     let s: f64 = vals.iter().sum::<f64>() + 0.0;
-    let se_sum = ses
-        .iter()
-        .map(|&s| f64::from(s) * f64::from(s))
-        .sum::<f64>()
-        .sqrt();
     let mut d = Diagnostics {
         min_row_sum: s,
         max_row_sum: s,
         max_row: i,
         empty_rows: usize::from(vals.is_empty()),
-        rows_over_one: usize::from(over_one(s, se_sum, 3.0)),
+        rows_over_one: usize::from(over_one(s, sum_bar(ses), 3.0)),
         ..Default::default()
     };
     let (mut pairs, mut beyond) = (0usize, 0usize);
     for (k, ((&j, &f), &se_ij)) in cols.iter().zip(vals).zip(ses).enumerate() {
-        let (j, se_ij) = (j as usize, f64::from(se_ij));
+        let (j, se_ij) = (j as usize, Bar::of(se_ij));
         if !f.is_finite() || !(0.0..=1.0).contains(&f) {
             d.out_of_range += 1;
         }
@@ -656,17 +838,18 @@ fn row_diagnostics(
 }
 
 /// Folds the reciprocity gap `|A_i F_ij - A_j F_ji|` of the stored entry `F_ij = f`
-/// (standard error `se_ij`), whose back entry `F_ji` is `back` (`None`: not stored, 0),
-/// into `d.reciprocity` and `d.reciprocity_significant`. Returns `None` when both sides
-/// are 0, else whether the gap is beyond 3 combined standard errors.
+/// (bar `se_ij`), whose back entry `F_ji` is `back` (`None`: not stored, 0), into
+/// `d.reciprocity` and `d.reciprocity_significant`. Returns `None` when both sides are 0,
+/// else whether the gap is beyond 3 combined bars (standard errors in quadrature, bounds
+/// linearly: [`Bar::plus`]).
 fn reciprocity_of(
     area: &[f64],
     (i, j): (usize, usize),
-    (f, se_ij): (f64, f64),
+    (f, se_ij): (f64, Bar),
     back: Option<(f64, f32)>,
     d: &mut Diagnostics,
 ) -> Option<bool> {
-    let (f_back, se_ji) = back.map_or((0.0, 0.0), |(f, s)| (f, f64::from(s)));
+    let (f_back, se_ji) = back.map_or((0.0, Bar::ZERO), |(f, s)| (f, Bar::of(s)));
     let fij = area[i] * f;
     let fji = area[j] * f_back;
     let m = fij.abs().max(fji.abs());
@@ -678,8 +861,8 @@ fn reciprocity_of(
     if f.max(f_back) >= SIGNIFICANT {
         d.reciprocity_significant = d.reciprocity_significant.max(gap / m);
     }
-    let se = (area[i] * se_ij).hypot(area[j] * se_ji);
-    Some(gap > 3.0 * se && gap > 1e-12 * m)
+    let bar = se_ij.times(area[i]).plus(se_ji.times(area[j]));
+    Some(gap > bar.allowance(3.0) && gap > 1e-12 * m)
 }
 
 impl Diagnostics {
@@ -793,19 +976,13 @@ impl Block {
         self.lo + self.f.rows()
     }
 
-    /// The largest standard error of a row sum in the block (as
-    /// [`FormFactors::row_sum_stderr`]), 0 for no rows.
-    pub fn max_row_sum_stderr(&self) -> f64 {
+    /// The largest bars of the row sums in the block (as [`FormFactors::row_sum_bar`]),
+    /// each part's largest on its own; 0 for no rows.
+    pub fn max_row_sum_bar(&self) -> Bar {
         let ptr = self.f.indptr().to_proper().into_owned();
         (0..self.rows())
-            .map(|r| {
-                self.se[ptr[r]..ptr[r + 1]]
-                    .iter()
-                    .map(|&s| f64::from(s) * f64::from(s))
-                    .sum::<f64>()
-                    .sqrt()
-            })
-            .fold(0.0, f64::max)
+            .map(|r| sum_bar(&self.se[ptr[r]..ptr[r + 1]]))
+            .fold(Bar::ZERO, Bar::max)
     }
 }
 
@@ -919,25 +1096,26 @@ impl<'a> BlockBuilder<'a> {
             if self.upper {
                 // As `CsrBuilder::from_upper` computes the mirror, bit for bit.
                 let s = self.area[i] / self.area[j];
-                let (mf, ms) = (e.f * s, (e.se * s) as f32);
+                let (mf, ms) = (e.f * s, Bar::of(e.se * s).stored_f32());
                 if let Some(r) = own {
                     let k = self.cursor[r].1;
                     self.cursor[r].1 += 1;
-                    self.put(k, (e.j, e.f, e.se as f32), (mf, ms));
+                    self.put(k, (e.j, e.f, Bar::of(e.se).stored_f32()), (mf, ms));
                 }
                 if let Some(r) = theirs {
                     let k = self.cursor[r].0;
                     self.cursor[r].0 += 1;
-                    self.put(k, (i as u32, mf, ms), (e.f, e.se as f32));
+                    self.put(k, (i as u32, mf, ms), (e.f, Bar::of(e.se).stored_f32()));
                 }
             } else {
                 if let Some(r) = own {
                     let k = self.cursor[r].0;
                     self.cursor[r].0 += 1;
-                    self.put(k, (e.j, e.f, e.se as f32), (f64::NAN, 0.0));
+                    self.put(k, (e.j, e.f, Bar::of(e.se).stored_f32()), (f64::NAN, 0.0));
                 }
                 if let Some(r) = theirs {
-                    self.backs.push((r as u32, i as u32, e.f, e.se as f32));
+                    self.backs
+                        .push((r as u32, i as u32, e.f, Bar::of(e.se).stored_f32()));
                 }
             }
         }
@@ -1084,27 +1262,49 @@ mod tests {
     }
 
     #[test]
-    fn an_excess_within_the_finest_tolerance_is_not_refused() {
-        // As the semi-analytic factors of the closed cube at 600 patches: a row 1 + 3.9e-8
-        // with a quadrature bar of 6.7e-9 (5.8 bars over) is within its 1e-6 tolerance.
-        let row = |excess: f64| {
-            let f = (1.0 + excess) / 4.0;
-            (1..5)
-                .map(|j| Entry { j, f, se: 3.35e-9 })
+    fn bounds_add_linearly_and_standard_errors_in_quadrature() {
+        // 100 entries of bound 1e-9 each: the row's bound is 1e-7 (linear), where read as
+        // standard errors they would allow only 3 * 1e-8 at 3 bars.
+        let row = |excess: f64, bounded: bool| {
+            let f = (1.0 + excess) / 100.0;
+            (1..101)
+                .map(|j| {
+                    if bounded {
+                        Entry::bounded(j, f, 1e-9)
+                    } else {
+                        Entry { j, f, se: 1e-9 }
+                    }
+                })
                 .collect::<Vec<_>>()
         };
-        let rows = |excess: f64| {
-            let mut r = vec![row(excess)];
-            r.resize(5, Vec::new());
-            r
+        let ff = |excess: f64, bounded: bool| {
+            let mut r = vec![row(excess, bounded)];
+            r.resize(101, Vec::new());
+            FormFactors::from_rows(r, vec![1.0; 101], 0, 0.0, "t".into(), 0)
         };
-        let ok = FormFactors::from_rows(rows(3.9e-8), vec![1.0; 5], 0, 0.0, "t".into(), 0);
+        let bar = ff(0.0, true).row_sum_bar(0);
+        assert_eq!(bar.se, 0.0);
+        assert!((bar.bound - 1e-7).abs() < 1e-13, "{bar:?}");
+        let bar = ff(0.0, false).row_sum_bar(0);
+        assert!((bar.se - 1e-8).abs() < 1e-13 && bar.bound == 0.0, "{bar:?}");
+        // 1 + 9e-8 is within the bound: not over 1, not refused.
+        let ok = ff(9e-8, true);
         assert_eq!(ok.row_over_one_beyond_chance(), None);
-        // Over the floor with the same bar: refused.
-        let bad = FormFactors::from_rows(rows(2e-6), vec![1.0; 5], 0, 0.0, "t".into(), 0);
+        assert_eq!(ok.diagnostics().rows_over_one, 0);
+        // 1 + 1.1e-7 is past the bound: over 1 and refused, whatever the alarm rate.
+        let bad = ff(1.1e-7, true);
+        assert_eq!(bad.diagnostics().rows_over_one, 1);
         let r = bad.row_over_one_beyond_chance().expect("refused");
-        assert_eq!(r.row, 0);
-        assert!((r.sum - (1.0 + 2e-6)).abs() < 1e-12);
+        assert_eq!((r.row, r.k, r.se), (0, 0.0, 0.0));
+        assert!((r.bound - 1e-7).abs() < 1e-13);
+        // The same excess with the bars read as standard errors is 11 of them over 1.
+        assert_eq!(ff(1.1e-7, false).diagnostics().rows_over_one, 1);
+        // A bound survives storage in f32 as a bound, rounded up.
+        for b in [1e-9, 3.3e-7, 0.1] {
+            let s = Bar::bound(b).stored_f32();
+            assert!(s.is_sign_negative() && -f64::from(s) >= b, "{b} -> {s}");
+            assert_eq!(Bar::of(s).se, 0.0);
+        }
     }
 
     #[test]
@@ -1156,7 +1356,7 @@ mod tests {
         // A row 10 of its standard errors over 1 (every row of the matrix is) is caught.
         let r = refused(200, 25, 25, 8, 10.0, 12);
         assert!(r >= 190, "only {r} of 200 caught");
-        // Exact rows: any excess beyond the refusal floor is refused.
+        // Exact rows (bar 0): any excess beyond rounding is refused.
         let rows = vec![
             vec![
                 Entry {
@@ -1166,7 +1366,7 @@ mod tests {
                 },
                 Entry {
                     j: 2,
-                    f: 0.4 + 2.0 * ROW_REFUSAL_FLOOR,
+                    f: 0.4 + 2e-9,
                     se: 0.0,
                 },
             ],
@@ -1235,7 +1435,7 @@ mod tests {
             d.min_row_sum = d.min_row_sum.min(s);
             for (k, (j, &f)) in row.iter().enumerate() {
                 let back = ff.f.nnz_index(j, i).map(|k| (ff.f.data()[k.0], ff.se[k.0]));
-                let fs = (f, f64::from(ff.se[lo + k]));
+                let fs = (f, Bar::of(ff.se[lo + k]));
                 if let Some(b) = reciprocity_of(&ff.area, (i, j), fs, back, &mut d) {
                     pairs += 1;
                     beyond += usize::from(b);

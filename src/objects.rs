@@ -14,7 +14,7 @@
 //!
 //! ## Standard errors
 //! The sum `S_IJ = sum A_i F_ij` is propagated from the per-entry standard errors `s_ij`
-//! (`stderr.mtx`) as the row sums are ([`crate::matrix::FormFactors::row_sum_stderr`]),
+//! (`stderr.mtx`) as the row sums are ([`crate::matrix::FormFactors::row_sum_bar`]),
 //! entries independent, added in quadrature, with one exception:
 //!
 //! - between two objects (`I != J`): `se(S_IJ)² = sum (A_i s_ij)²`;
@@ -28,9 +28,15 @@
 //! estimate share their rays and are negatively correlated (a ray hits one patch or
 //! another), so there too the quadrature sum is on the safe side.
 //!
+//! Entries whose error is deterministic carry a bound `b_ij` instead (`bound.mtx`,
+//! [`crate::matrix::Bar`]); bounds add linearly, `bound(S_IJ) = sum A_i b_ij` (both entries
+//! of a pair counted), and `bound(F_IJ) = bound(S_IJ) / A_I`, written as
+//! `objects_bound.csv`.
+//!
 //! ## Files
 //! [`ObjectFactors::objects_csv`], [`ObjectFactors::matrix_csv`] give the text of
-//! `objects.csv` (`id,name,patches,area`), `objects_F.csv` and `objects_stderr.csv`: square
+//! `objects.csv` (`id,name,patches,area`), `objects_F.csv`, `objects_stderr.csv` and
+//! `objects_bound.csv`: square
 //! tables with a header row `from,NAME_0,NAME_1,...` and one row per source object, its
 //! name first, so that `pandas.read_csv("objects_F.csv", index_col=0)` is the matrix with
 //! its names (`df.loc["light", "floor"]`) and `numpy.loadtxt(..., delimiter=",",
@@ -40,7 +46,7 @@
 use std::fmt::Write as _;
 
 use crate::error::{Error, Result};
-use crate::matrix::{mirror, Csr, FormFactors};
+use crate::matrix::{mirror, Bar, Csr, FormFactors};
 use crate::mesh::PatchSet;
 use crate::output::csv_field;
 
@@ -61,6 +67,8 @@ pub struct ObjectFactors {
     pub f: Vec<f64>,
     /// Standard error of each `F_IJ`, row-major.
     pub se: Vec<f64>,
+    /// Bound on the deterministic error of each `F_IJ`, row-major.
+    pub bound: Vec<f64>,
 }
 
 impl ObjectFactors {
@@ -105,11 +113,13 @@ impl ObjectFactors {
         }
         let (zf, zse, _) = lump(&ff.f, &ff.se, &patches.area, &patches.object, n)?;
         let (mut f, mut se) = (vec![0.0f64; n * n], vec![0.0f64; n * n]);
+        let mut bound = vec![0.0f64; n * n];
         let mut k = 0;
         for (i, row) in zf.outer_iterator().enumerate() {
             for (j, &v) in row.iter() {
                 f[i * n + j] = v;
-                se[i * n + j] = zse[k];
+                se[i * n + j] = zse[k].se;
+                bound[i * n + j] = zse[k].bound;
                 k += 1;
             }
         }
@@ -119,6 +129,7 @@ impl ObjectFactors {
             area,
             f,
             se,
+            bound,
         })
     }
 
@@ -140,6 +151,11 @@ impl ObjectFactors {
     /// Standard error of `F_IJ`.
     pub fn stderr(&self, from: usize, to: usize) -> f64 {
         self.se[from * self.len() + to]
+    }
+
+    /// Bound on the deterministic error of `F_IJ`.
+    pub fn bound(&self, from: usize, to: usize) -> f64 {
+        self.bound[from * self.len() + to]
     }
 
     /// Index of the object named `name`.
@@ -186,20 +202,20 @@ impl ObjectFactors {
 
 /// Factors between groups of patches (objects, or a thermal run's surfaces): `group[i]`
 /// names patch i's group in `0..groups`.
-/// Returns the zone matrix `F_SK = sum_{i in S, j in K} A_i F_ij / A_S` (CSR), its standard
-/// errors and the zone areas. With each surface as one zone of uniform radiosity this is
+/// Returns the zone matrix `F_SK = sum_{i in S, j in K} A_i F_ij / A_S` (CSR), its bars
+/// (standard errors and bounds, module docs) and the zone areas. With each surface as one zone of uniform radiosity this is
 /// the zonal model that the closed forms of the textbooks assume (Hottel and Sarofim 1967,
 /// ch. 8; Modest, 3rd ed., sec. 6.3: "each surface isothermal with uniform radiosity").
 /// Reciprocal pairs of patches (module docs) give reciprocal zone factors with coupled
 /// errors: within one zone a pair counts twice, `(2 A_i s_ij)²`; the other terms add as
-/// independent variances `(A_i s_ij)²`.
+/// independent variances `(A_i s_ij)²`. Bounds add linearly.
 pub fn lump(
     f: &Csr,
     se: &[f32],
     area: &[f64],
     group: &[u32],
     groups: usize,
-) -> Result<(Csr, Vec<f64>, Vec<f64>)> {
+) -> Result<(Csr, Vec<Bar>, Vec<f64>)> {
     let n = area.len();
     if f.rows() != n || se.len() != f.nnz() || group.len() != n {
         return Err(Error::Config(format!(
@@ -222,6 +238,7 @@ pub fn lump(
     }
     let mut sum = vec![0.0; groups * groups];
     let mut var = vec![0.0; groups * groups];
+    let mut bound = vec![0.0; groups * groups];
     let ptr = f.indptr();
     let ptr = ptr.to_proper();
     let (ind, val) = (f.indices(), f.data());
@@ -231,7 +248,9 @@ pub fn lump(
             let j = ind[e] as usize;
             let k = group[j] as usize;
             sum[s * groups + k] += area[i] * val[e];
-            let v = (area[i] * f64::from(se[e])).powi(2);
+            let bar = Bar::of(se[e]);
+            bound[s * groups + k] += area[i] * bar.bound;
+            let v = (area[i] * bar.se).powi(2);
             // Only pairs within one group are coupled: their mirrors alone are looked up.
             let paired = s == k && mirror(f, se, area, i, e).is_some();
             match paired {
@@ -255,7 +274,10 @@ pub fn lump(
     // Standard errors in the CSR order of `zf`.
     for (s, row) in zf.outer_iterator().enumerate() {
         for (k, _) in row.iter() {
-            out_se.push(var[s * groups + k].sqrt() / a[s]);
+            out_se.push(Bar {
+                se: var[s * groups + k].sqrt() / a[s],
+                bound: bound[s * groups + k] / a[s],
+            });
         }
     }
     Ok((zf, out_se, a))

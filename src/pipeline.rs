@@ -226,8 +226,8 @@ pub struct BakeSummary {
     pub estimator: String,
     /// Form-factor diagnostics.
     pub diagnostics: Diagnostics,
-    /// Largest standard error of a row sum.
-    pub max_row_sum_stderr: f64,
+    /// Largest bar of a row sum (each part's largest: [`crate::matrix::Block::max_row_sum_bar`]).
+    pub max_row_sum_bar: crate::matrix::Bar,
     /// Bounds found (rows over 1, entries out of range) and the repair applied.
     pub repair: RepairReport,
     /// Solver report.
@@ -389,15 +389,25 @@ fn check_rows(matrix: &Path, ff: &FormFactors, repair: Repair) -> Result<()> {
     let Some(r) = ff.row_over_one_beyond_chance() else {
         return Ok(());
     };
+    let bar = crate::matrix::Bar {
+        se: r.se,
+        bound: r.bound,
+    };
     let by = if r.se > 0.0 {
         format!(
-            "{:.1} standard errors ({:.1} allowed by chance over {} rows at a false-alarm \
-             rate of {:.0e}, {:.0} degrees of freedom)",
-            (r.sum - 1.0) / r.se,
+            "{:.1} standard errors beyond its bound of {:.1e} ({:.1} allowed by chance over {} \
+             rows at a false-alarm rate of {:.0e}, {:.0} degrees of freedom)",
+            (r.sum - 1.0 - r.bound) / r.se,
+            r.bound,
             r.k,
             ff.len(),
             crate::matrix::ROW_ALARM,
             r.dof
+        )
+    } else if r.bound > 0.0 {
+        format!(
+            "more than its bound ({:.1e}, the entries' bounds added)",
+            r.bound
         )
     } else {
         String::from("more than rounding, with no error bar")
@@ -405,13 +415,13 @@ fn check_rows(matrix: &Path, ff: &FormFactors, repair: Repair) -> Result<()> {
     Err(Error::Mismatch {
         path: matrix.to_path_buf(),
         msg: format!(
-            "row {} of the matrix (patch {}) sums to {:.6} ± {:.1e}, over 1 by {by}: no physical row \
+            "row {} of the matrix (patch {}) sums to {:.6} {}, over 1 by {by}: no physical row \
              sums over 1; bake with --repair closure (or both) to restore the row sums, or \
              recompute the factors with more samples",
             r.row + 1,
             r.row,
             r.sum,
-            r.se
+            bar
         ),
     })
 }
@@ -522,13 +532,13 @@ pub fn solve_radiosity(
             0,
             format!(
                 "{} rows of F had rho * (row sum) >= 1 (worst {:.4} at patch {}, row sum {:.4}, \
-                 row-sum std. error {:.1e}) and were scaled to sum to 1, so that the solve stays \
+                 row-sum bar {}) and were scaled to sum to 1, so that the solve stays \
                  bounded: raise the samples if this is more than noise",
                 rep.rows.len(),
                 rep.worst_gain,
                 rep.worst.0,
                 rep.worst.1,
-                ff.row_sum_stderr(rep.worst.0)
+                ff.row_sum_bar(rep.worst.0)
             ),
         );
     }
@@ -631,10 +641,10 @@ fn bake_gathered(
     else {
         return Ok(None);
     };
-    let (diagnostics, max_row_sum_stderr) = timer.run("diagnostics", 0, || {
+    let (diagnostics, max_row_sum_bar) = timer.run("diagnostics", 0, || {
         let worst = (0..ff.len())
-            .map(|i| ff.row_sum_stderr(i))
-            .fold(0.0, f64::max);
+            .map(|i| ff.row_sum_bar(i))
+            .fold(crate::matrix::Bar::ZERO, crate::matrix::Bar::max);
         (ff.diagnostics(), worst)
     });
     let (b, report) = timer.run("solve", 0, || {
@@ -668,7 +678,7 @@ fn bake_gathered(
         rays: ff.rays,
         estimator: ff.estimator.clone(),
         diagnostics,
-        max_row_sum_stderr,
+        max_row_sum_bar,
         repair: repair_report,
         solve: report,
         stages: timer.stages,
@@ -832,7 +842,7 @@ fn bake_hierarchical(
             settings.error, r.min_area, settings.rays, settings.rays
         ),
         diagnostics: Diagnostics::default(),
-        max_row_sum_stderr: 0.0,
+        max_row_sum_bar: crate::matrix::Bar::ZERO,
         repair: RepairReport::default(),
         solve,
         stages: timer.stages,
@@ -1063,10 +1073,10 @@ pub fn format_summary(s: &BakeSummary) -> String {
     let d = &s.diagnostics;
     let _ = writeln!(
         o,
-        "  row sums in [{:.5}, {:.5}] (row-sum std. error <= {:.1e}); {} rows over 1 beyond 3 std. errors; {} patches see nothing",
+        "  row sums in [{:.5}, {:.5}] (row-sum bar <= {}); {} rows over 1 beyond 3 std. errors plus bounds; {} patches see nothing",
         d.min_row_sum.max(0.0),
         d.max_row_sum,
-        s.max_row_sum_stderr,
+        s.max_row_sum_bar,
         d.rows_over_one,
         d.empty_rows
     );
@@ -1192,7 +1202,7 @@ fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
     }
     let _ = writeln!(
         o,
-        "  leaf factor sums: largest {:.6} (bar {:.1e}); {} leaves over 1 beyond 3 bars",
+        "  leaf factor sums: largest {:.6} {}; {} leaves over 1 beyond 3 standard errors plus bounds",
         h.max_row_sum.0, h.max_row_sum.1, h.rows_over_one
     );
     let lum = |c: [f64; 3]| 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
@@ -1439,7 +1449,7 @@ pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary
         if cfg.zones {
             let (zf, zse, za) = crate::objects::lump(&ff.f, &ff.se, &ff.area, &surface_of, groups)?;
             // Stored as every bar is, in f32.
-            let zse: Vec<f32> = zse.iter().map(|&s| s as f32).collect();
+            let zse: Vec<f32> = zse.iter().map(|b| b.stored_f32()).collect();
             let zeps: Vec<f64> = infos.iter().map(|s| s.emissivity).collect();
             let zbc: Vec<_> = infos.iter().map(|s| s.boundary).collect();
             let zp = Problem {
@@ -1559,6 +1569,14 @@ pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary
     })
 }
 
+/// A surface flow's bar: its standard error and its bound ([`crate::matrix::Bar`]).
+fn flow_bar(f: &crate::thermal::Flow) -> crate::matrix::Bar {
+    crate::matrix::Bar {
+        se: f.se,
+        bound: f.bound,
+    }
+}
+
 /// The one-screen summary of a thermal run: per surface `T`, `q`, `Q` with their error
 /// bars, and the energy balance.
 pub fn format_thermal_summary(s: &ThermalSummary) -> String {
@@ -1612,7 +1630,11 @@ pub fn format_thermal_summary(s: &ThermalSummary) -> String {
         };
         let q = match x.info.boundary {
             crate::scene::Boundary::Flux(q) => format!("{q} (given)"),
-            _ => format!("{:.6e} ± {:.1e}", r.flow.q / r.area, r.flow.se / r.area),
+            _ => format!(
+                "{:.6e} {}",
+                r.flow.q / r.area,
+                flow_bar(&r.flow).times(1.0 / r.area)
+            ),
         };
         let _ = writeln!(
             o,
@@ -1621,7 +1643,7 @@ pub fn format_thermal_summary(s: &ThermalSummary) -> String {
             x.info.emissivity,
             t,
             q,
-            format!("{:.6e} ± {:.1e}", r.flow.q, r.flow.se)
+            format!("{:.6e} {}", r.flow.q, flow_bar(&r.flow))
         );
     }
     let scale = s
@@ -1631,10 +1653,10 @@ pub fn format_thermal_summary(s: &ThermalSummary) -> String {
         .fold(0.0, f64::max);
     let _ = writeln!(
         o,
-        "energy balance: sum of Q = {:.6e} ± {:.1e} W ({:+.1e} of the largest |Q|); to the \
+        "energy balance: sum of Q = {:.6e} {} W ({:+.1e} of the largest |Q|); to the \
          environment {:.6e} ± {:.1e} W",
         s.total.flow.q,
-        s.total.flow.se,
+        flow_bar(&s.total.flow),
         if scale > 0.0 {
             s.total.flow.q / scale
         } else {

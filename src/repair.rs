@@ -27,8 +27,14 @@
 //!
 //! The sparsity pattern is kept: entries that were not stored are not created (a pair
 //! stored in one direction only is left as it is by reciprocity).
+//!
+//! Bounds ([`Bar`]): the weights take each bar's magnitude as its `σ`. The reciprocity mean
+//! of two bounded entries is bounded by the same weighted mean of their bounds, and stays a
+//! bound; any other repaired entry gets the standard error above (a bound's magnitude
+//! counted as a standard error: the repair's shift is a least-squares correction, not a
+//! deterministic one).
 
-use crate::matrix::{Csr, FormFactors};
+use crate::matrix::{sum_bar, Bar, Csr, FormFactors};
 
 /// Which constraints [`repair`] enforces (also the command line's `--repair` values).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
@@ -51,19 +57,9 @@ pub struct RowOver {
     pub row: usize,
     /// Its sum.
     pub sum: f64,
-    /// Standard error of the sum.
-    pub se: f64,
-}
-
-impl RowOver {
-    /// How many standard errors the sum exceeds 1 by (infinite for an exact row).
-    pub fn sigmas(&self) -> f64 {
-        if self.se > 0.0 {
-            (self.sum - 1.0) / self.se
-        } else {
-            f64::INFINITY
-        }
-    }
+    /// The sum's bar ([`crate::matrix::sum_bar`]: standard errors in quadrature, bounds
+    /// linearly).
+    pub bar: Bar,
 }
 
 /// What [`check`] found.
@@ -76,12 +72,12 @@ pub struct Bounds {
 }
 
 impl Bounds {
-    /// Rows over 1 by more than `k` standard errors (not explained by the noise; see
-    /// [`crate::matrix::over_one`]).
+    /// Rows over 1 by more than `k` standard errors plus their bounds (not explained by
+    /// the noise or the quadrature; see [`crate::matrix::over_one`]).
     pub fn significant(&self, k: f64) -> usize {
         self.rows_over_one
             .iter()
-            .filter(|r| crate::matrix::over_one(r.sum, r.se, k))
+            .filter(|r| crate::matrix::over_one(r.sum, r.bar, k))
             .count()
     }
 
@@ -92,12 +88,12 @@ impl Bounds {
             .iter()
             .max_by(|a, b| a.sum.total_cmp(&b.sum));
         let mut s = format!(
-            "{} rows sum over 1 ({} by more than 3 standard errors)",
+            "{} rows sum over 1 ({} by more than 3 standard errors plus their bounds)",
             self.rows_over_one.len(),
             self.significant(3.0)
         );
         if let Some(w) = worst {
-            s += &format!(", worst row {} = {:.6} ± {:.1e}", w.row, w.sum, w.se);
+            s += &format!(", worst row {} = {:.6} {}", w.row, w.sum, w.bar);
         }
         if !self.out_of_range.is_empty() {
             s += &format!("; {} entries OUT OF [0, 1]", self.out_of_range.len());
@@ -124,12 +120,8 @@ pub fn check_rows(f: &Csr, se: &[f32], lo: usize) -> Bounds {
             b.rows_over_one.push(RowOver {
                 row: i,
                 sum,
-                // As `FormFactors::row_sum_stderr`.
-                se: se[a..z]
-                    .iter()
-                    .map(|&s| f64::from(s) * f64::from(s))
-                    .sum::<f64>()
-                    .sqrt(),
+                // As `FormFactors::row_sum_bar`.
+                bar: sum_bar(&se[a..z]),
             });
         }
         for (j, &f) in row.iter() {
@@ -233,9 +225,9 @@ pub fn repair(ff: &FormFactors, how: Repair) -> (FormFactors, RepairReport) {
     )
 }
 
-/// The stored `f32` standard errors as `f64` weights.
+/// The stored bars' magnitudes ([`Bar::magnitude`]) as `f64` weights.
 fn widen(se: &[f32]) -> Vec<f64> {
-    se.iter().map(|&s| f64::from(s)).collect()
+    se.iter().map(|&s| Bar::of(s).magnitude()).collect()
 }
 
 /// Index into `data` of the stored entry (i, j).
@@ -260,7 +252,10 @@ fn reciprocity(ff: &mut FormFactors, sigma: &[f64], update_se: bool) {
             let Some(kt) = slot(ff, j, i) else { continue };
             let (g1, g2) = (area[i] * ff.f.data()[k], area[j] * ff.f.data()[kt]);
             let (v1, v2) = ((area[i] * sigma[k]).powi(2), (area[j] * sigma[kt]).powi(2));
-            let (g, v) = if v1 == 0.0 && v2 == 0.0 {
+            // Both bounded: the weighted mean's error is within the weighted mean of the
+            // bounds, stored as a bound (a negative stored bar).
+            let bounds = Bar::of(ff.se[k]).se == 0.0 && Bar::of(ff.se[kt]).se == 0.0;
+            let (g, s) = if v1 == 0.0 && v2 == 0.0 {
                 (0.5 * (g1 + g2), 0.0)
             } else if v1 == 0.0 {
                 (g1, 0.0)
@@ -268,9 +263,14 @@ fn reciprocity(ff: &mut FormFactors, sigma: &[f64], update_se: bool) {
                 (g2, 0.0)
             } else {
                 let (w1, w2) = (1.0 / v1, 1.0 / v2);
-                ((g1 * w1 + g2 * w2) / (w1 + w2), 1.0 / (w1 + w2))
+                let g = (g1 * w1 + g2 * w2) / (w1 + w2);
+                if bounds {
+                    let b = (v1.sqrt() * w1 + v2.sqrt() * w2) / (w1 + w2);
+                    (g, -b)
+                } else {
+                    (g, (1.0 / (w1 + w2)).sqrt())
+                }
             };
-            let s = v.sqrt();
             changes.push((k, g / area[i], s / area[i]));
             changes.push((kt, g / area[j], s / area[j]));
         }
@@ -278,7 +278,7 @@ fn reciprocity(ff: &mut FormFactors, sigma: &[f64], update_se: bool) {
     for (k, f, s) in changes {
         ff.f.data_mut()[k] = f;
         if update_se {
-            ff.se[k] = s as f32;
+            ff.se[k] = Bar::of(s).stored_f32();
         }
     }
 }

@@ -1,18 +1,27 @@
 //! A reusable form-factor folder: compute once, bake many times.
 //!
 //! `radiosity factors SCENE -o DIR` writes
-//! - the form-factor matrix and the standard error of each stored entry (same pattern), in
-//!   one of two layouts ([`Format`]):
-//!   - `F.mtx` and `stderr.mtx`: Matrix Market coordinate real general text (1-based; SciPy
-//!     `scipy.io.mmread`, Julia `MatrixMarket.mmread` and sprs read it);
-//!   - `F.npz` and `stderr.npz`: SciPy's sparse layout ([`crate::npz`]; read by
-//!     `scipy.sparse.load_npz`), values as stored in memory: `float64` form factors,
-//!     `float32` standard errors (the bars are kept in `f32`, so the file holds every bit of
-//!     them and no more);
+//! - the form-factor matrix and the error bar of each stored entry ([`crate::matrix::Bar`]),
+//!   as two matrices of the same pattern as `F`: `stderr`, the standard error of the
+//!   entry's random part (0 where its error is deterministic), and `bound`, a bound on the
+//!   entry's deterministic error (0 where it is random: only the semi-analytic estimator's
+//!   quadrature of unoccluded pairs makes bounds). Sum standard errors in quadrature and
+//!   bounds linearly. In one of two layouts ([`Format`]):
+//!   - `F.mtx`, `stderr.mtx` and `bound.mtx`: Matrix Market coordinate real general text
+//!     (1-based; SciPy `scipy.io.mmread`, Julia `MatrixMarket.mmread` and sprs read it);
+//!   - `F.npz`, `stderr.npz` and `bound.npz`: SciPy's sparse layout ([`crate::npz`]; read
+//!     by `scipy.sparse.load_npz`), values as stored in memory: `float64` form factors,
+//!     `float32` bars (the bars are kept in `f32`, so the file holds every bit of them and
+//!     no more).
+//!
+//!   Folders written before bounds were told apart have no `bound` file: their `stderr`
+//!   is read as standard errors, as it was written. A reader that knows only `stderr`
+//!   sees the bounded entries' standard error 0, as for any deterministic estimate.
 //! - `patches.csv`: one row per patch: id, area, centroid, normal, object, material, rho,
 //!   E (names quoted as CSV quotes them when they hold a comma or a quote);
-//! - `objects.csv`, `objects_F.csv`, `objects_stderr.csv`: the factors between the scene's
-//!   objects (area-weighted sums of the patch factors) and their standard errors, as
+//! - `objects.csv`, `objects_F.csv`, `objects_stderr.csv`, `objects_bound.csv`: the factors
+//!   between the scene's objects (area-weighted sums of the patch factors) and their
+//!   standard errors and bounds, as
 //!   tables named by object ([`crate::objects`]); left out, with a warning, for a scene of
 //!   more than [`crate::objects::MAX_OBJECTS`] objects;
 //! - `provenance.json`: the settings that shaped the matrix (estimator and its settings,
@@ -47,7 +56,7 @@ use sha2::{Digest, Sha256};
 
 use crate::error::{Error, Result};
 use crate::input::open_regular;
-use crate::matrix::FormFactors;
+use crate::matrix::{Bar, FormFactors};
 use crate::mesh::PatchSet;
 use crate::npz::{self, Compression};
 use crate::objects::{ObjectFactors, MAX_OBJECTS};
@@ -97,11 +106,24 @@ impl Format {
             Format::Npz | Format::NpzDeflated => ["F.npz", "stderr.npz"],
         }
     }
+
+    /// The file of the entries' bounds (see the [module docs](self)).
+    pub fn bound_file(self) -> &'static str {
+        match self {
+            Format::Mtx | Format::Auto => "bound.mtx",
+            Format::Npz | Format::NpzDeflated => "bound.npz",
+        }
+    }
 }
 
 /// The object tables ([`crate::objects`]): hashed in the provenance when written, and then
 /// checked by [`fn@read`].
-pub const OBJECT_TABLES: [&str; 3] = ["objects.csv", "objects_F.csv", "objects_stderr.csv"];
+pub const OBJECT_TABLES: [&str; 4] = [
+    "objects.csv",
+    "objects_F.csv",
+    "objects_stderr.csv",
+    "objects_bound.csv",
+];
 
 /// The provenance record stored beside a matrix.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -134,6 +156,10 @@ pub struct Provenance {
     /// before it was recorded: not known).
     #[serde(default)]
     pub replicates: usize,
+    /// The bar of every entry not stored ([`FormFactors::unresolved`]: hemisphere
+    /// shooting's patches no ray hit; 0, or absent in older folders, otherwise).
+    #[serde(default)]
+    pub unresolved: f64,
     /// SHA-256 (lower-case hex) of the matrix files ([`Format::files`]), `patches.csv`
     /// and of [`OBJECT_TABLES`] when written, by name.
     pub sha256: BTreeMap<String, String>,
@@ -178,15 +204,26 @@ fn write_mtx<V: std::fmt::LowerExp + Sync>(
     path: &Path,
     ff: &FormFactors,
     values: &[V],
+    what: &str,
 ) -> Result<()> {
-    write_mtx_in(path, ff, values, PIECE, PIECES)
+    write_mtx_in(path, ff, values, what, PIECE, PIECES)
 }
+
+/// The comment line of each matrix file: what its values are and how they add.
+const F_COMMENT: &str = "F(i, j): fraction of the energy leaving patch i that reaches patch j";
+/// See [`F_COMMENT`].
+const SE_COMMENT: &str = "standard error of the random part of each F(i, j) (0 where \
+                          its error is deterministic: see bound); add in quadrature over sums";
+/// See [`F_COMMENT`].
+const BOUND_COMMENT: &str = "bound on the deterministic error of each F(i, j) (0 where \
+                             its error is random: see stderr); add linearly over sums";
 
 /// [`write_mtx`] with tasks of about `piece` entries, `pieces` of them at a time.
 fn write_mtx_in<V: std::fmt::LowerExp + Sync>(
     path: &Path,
     ff: &FormFactors,
     values: &[V],
+    what: &str,
     piece: usize,
     pieces_at_once: usize,
 ) -> Result<()> {
@@ -203,6 +240,7 @@ fn write_mtx_in<V: std::fmt::LowerExp + Sync>(
             ff.estimator
         )
         .map_err(io)?;
+        writeln!(w, "% {what}").map_err(io)?;
         writeln!(w, "{n} {n} {}", ff.f.nnz()).map_err(io)?;
         // The matrix is owned: its row pointers start at 0 and index `indices` and `values`.
         let ptr = ff.f.indptr();
@@ -278,10 +316,10 @@ fn check_values(dir: &Path, ff: &FormFactors, format: Format) -> Result<()> {
             }
         }
     }
-    if let Some(k) = ff.se.iter().position(|s| !(s.is_finite() && *s >= 0.0)) {
+    if let Some(k) = ff.se.iter().position(|&s| !Bar::of(s).is_valid()) {
         return Err(Error::Output {
             path: dir.join(se_name),
-            msg: format!("standard error {k} is {}, not stored", ff.se[k]),
+            msg: format!("error bar {k} is {}, not stored", Bar::of(ff.se[k])),
         });
     }
     Ok(())
@@ -296,10 +334,24 @@ fn write_files(
     format: Format,
 ) -> Result<Provenance> {
     let [f_name, se_name] = format.files();
+    let bound_name = format.bound_file();
+    // The two parts of the bars, each 0 where the other holds.
+    let (se, bound): (Vec<f32>, Vec<f32>) = ff
+        .se
+        .par_iter()
+        .map(|&s| {
+            if s.is_sign_negative() {
+                (0.0, -s)
+            } else {
+                (s, 0.0)
+            }
+        })
+        .unzip();
     match format {
         Format::Mtx | Format::Auto => {
-            write_mtx(&dir.join(f_name), ff, ff.f.data())?;
-            write_mtx(&dir.join(se_name), ff, &ff.se)?;
+            write_mtx(&dir.join(f_name), ff, ff.f.data(), F_COMMENT)?;
+            write_mtx(&dir.join(se_name), ff, &se, SE_COMMENT)?;
+            write_mtx(&dir.join(bound_name), ff, &bound, BOUND_COMMENT)?;
         }
         Format::Npz | Format::NpzDeflated => {
             let compression = if format == Format::Npz {
@@ -310,14 +362,20 @@ fn write_files(
             let n = ff.len();
             let ptr = ff.f.indptr();
             let ptr = ptr.to_proper();
-            let (f, se) = (dir.join(f_name), dir.join(se_name));
-            // The two files side by side: each is conversion and copying, one core's work.
-            let (a, b) = rayon::join(
+            let (f, se_path, b_path) = (dir.join(f_name), dir.join(se_name), dir.join(bound_name));
+            // The files side by side: each is conversion and copying, one core's work.
+            let (a, (b, c)) = rayon::join(
                 || npz::write(&f, n, &ptr, ff.f.indices(), ff.f.data(), compression),
-                || npz::write(&se, n, &ptr, ff.f.indices(), &ff.se, compression),
+                || {
+                    rayon::join(
+                        || npz::write(&se_path, n, &ptr, ff.f.indices(), &se, compression),
+                        || npz::write(&b_path, n, &ptr, ff.f.indices(), &bound, compression),
+                    )
+                },
             );
             a?;
             b?;
+            c?;
         }
     }
     let mut csv =
@@ -352,7 +410,7 @@ fn write_files(
     };
     text("patches.csv", &csv)?;
     let mut sha256 = BTreeMap::new();
-    for name in [f_name, se_name, "patches.csv"] {
+    for name in [f_name, se_name, bound_name, "patches.csv"] {
         sha256.insert(name.to_string(), sha256_file(&dir.join(name))?.1);
     }
     let objects_skipped = if patches.objects.len() > MAX_OBJECTS {
@@ -362,10 +420,11 @@ fn write_files(
         )
     } else {
         let o = ObjectFactors::aggregate(patches, ff)?;
-        let [list, f, se] = OBJECT_TABLES;
+        let [list, f, se, bound] = OBJECT_TABLES;
         text(list, &o.objects_csv())?;
         text(f, &o.matrix_csv(&o.f))?;
         text(se, &o.matrix_csv(&o.se))?;
+        text(bound, &o.matrix_csv(&o.bound))?;
         for name in OBJECT_TABLES {
             sha256.insert(name.to_string(), sha256_file(&dir.join(name))?.1);
         }
@@ -385,6 +444,7 @@ fn write_files(
         max_edge: patches.max_edge,
         repair: format!("{repair:?}"),
         replicates: ff.replicates,
+        unresolved: ff.unresolved,
         sha256,
         objects_skipped,
     };
@@ -715,6 +775,28 @@ fn read_npz<V: npz::Value + Into<f64>>(
     Ok((m, hex(&input.hasher.finalize())))
 }
 
+/// Folds the bounds read from `path` into the standard errors `se` (same pattern) as
+/// stored bars ([`Bar::stored`]): an entry with a bound holds it (its standard error must
+/// be 0: this crate writes one part per entry).
+fn join_bounds(path: &Path, se: &mut [f32], bounds: impl Iterator<Item = f32>) -> Result<()> {
+    for (k, (s, b)) in se.iter_mut().zip(bounds).enumerate() {
+        if b > 0.0 {
+            if *s != 0.0 {
+                return Err(Error::Parse {
+                    path: path.to_path_buf(),
+                    line: None,
+                    msg: format!(
+                        "entry {k} has both a bound ({b:e}) and a standard error ({s:e}): \
+                         each entry's bar is one or the other"
+                    ),
+                });
+            }
+            *s = -b;
+        }
+    }
+    Ok(())
+}
+
 /// Refuses a file whose SHA-256 is not the one the provenance records.
 fn check_hash(dir: &Path, prov: &Provenance, name: &str, sha256: &str) -> Result<()> {
     match prov.sha256.get(name) {
@@ -823,7 +905,18 @@ pub fn read_located(dir: &Path, patches: &PatchSet) -> Result<(FormFactors, Path
                 Some((&f.indptr, &f.indices)),
             )?;
             check_hash(dir, &prov, se_name, &se.sha256)?;
-            let se = se.data.iter().map(|&s| s as f32).collect();
+            let mut se: Vec<f32> = se.data.iter().map(|&s| s as f32).collect();
+            let b_name = format.bound_file();
+            if prov.sha256.contains_key(b_name) {
+                let b = read_mtx(
+                    &dir.join(b_name),
+                    n,
+                    Values::StdErrors,
+                    Some((&f.indptr, &f.indices)),
+                )?;
+                check_hash(dir, &prov, b_name, &b.sha256)?;
+                join_bounds(&dir.join(b_name), &mut se, b.data.iter().map(|&b| b as f32))?;
+            }
             (f.indptr, f.indices, f.data, se)
         }
         Format::Npz | Format::NpzDeflated => {
@@ -838,7 +931,21 @@ pub fn read_located(dir: &Path, patches: &PatchSet) -> Result<(FormFactors, Path
                 });
             }
             check_hash(dir, &prov, se_name, &sha)?;
-            (f.indptr, f.indices, f.data, se.data)
+            let mut se = se.data;
+            let b_name = format.bound_file();
+            if prov.sha256.contains_key(b_name) {
+                let b_path = dir.join(b_name);
+                let (b, sha) = read_npz::<f32>(&b_path, n, Values::StdErrors)?;
+                if b.indptr != f.indptr || b.indices != f.indices {
+                    return Err(Error::Mismatch {
+                        path: b_path,
+                        msg: format!("the bounds do not have the pattern of {f_name}"),
+                    });
+                }
+                check_hash(dir, &prov, b_name, &sha)?;
+                join_bounds(&b_path, &mut se, b.data.into_iter())?;
+            }
+            (f.indptr, f.indices, f.data, se)
         }
     };
     let f =
@@ -856,6 +963,7 @@ pub fn read_located(dir: &Path, patches: &PatchSet) -> Result<(FormFactors, Path
         estimator: prov.estimator,
         seed: prov.seed,
         replicates: prov.replicates,
+        unresolved: prov.unresolved,
     };
     Ok((ff, f_path))
 }
@@ -987,12 +1095,13 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("F.mtx");
         for (piece, at_once) in [(PIECE, PIECES), (1, 1), (3, 2), (4, 64)] {
-            write_mtx_in(&path, &ff, ff.f.data(), piece, at_once).unwrap();
+            write_mtx_in(&path, &ff, ff.f.data(), F_COMMENT, piece, at_once).unwrap();
             let text = std::fs::read_to_string(&path).unwrap();
-            let body: String = text.lines().skip(3).map(|l| format!("{l}\n")).collect();
+            let body: String = text.lines().skip(4).map(|l| format!("{l}\n")).collect();
             assert_eq!(body, want, "piece {piece}, {at_once} at once");
+            assert_eq!(text.lines().nth(2), Some(format!("% {F_COMMENT}").as_str()));
             assert_eq!(
-                text.lines().nth(2),
+                text.lines().nth(3),
                 Some(format!("{n} {n} {}", ff.f.nnz()).as_str())
             );
         }

@@ -73,9 +73,11 @@ fn factors_on_1_2_3_ranks_are_the_single_process_files_byte_for_byte() {
             for f in [
                 "F.mtx",
                 "stderr.mtx",
+                "bound.mtx",
                 "patches.csv",
                 "objects_F.csv",
                 "objects_stderr.csv",
+                "objects_bound.csv",
             ] {
                 assert!(
                     bytes(&one.join(f)) == bytes(&out.join(f)),

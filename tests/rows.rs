@@ -6,7 +6,7 @@
 //! semi-analytic integral ([`radiosity::formfactor::area::near`]).
 
 use radiosity::formfactor::area::{near, NEAR};
-use radiosity::matrix::FormFactors;
+use radiosity::matrix::{over_one, Bar, FormFactors};
 use radiosity::mesh::{PatchSet, Resolution};
 use radiosity::pipeline::{self, EstimatorChoice, Quiet};
 use radiosity::scene::Scene;
@@ -68,12 +68,13 @@ enum Shape {
     Gap(f64),
 }
 
-/// Rows over 1 by more than `k` bars (each row's entries' bars in quadrature).
-fn rows_over(ff: &FormFactors, k: f64) -> Vec<(usize, f64, f64)> {
+/// Rows over 1 by more than `k` standard errors plus their bounds ([`over_one`]: the
+/// entries' standard errors in quadrature, their bounds linearly).
+fn rows_over(ff: &FormFactors, k: f64) -> Vec<(usize, f64, Bar)> {
     (0..ff.len())
         .filter_map(|i| {
-            let (sum, se) = (ff.row_sum(i), ff.row_sum_stderr(i));
-            (sum > 1.0 + (k * se).max(1e-6)).then_some((i, sum, se))
+            let (sum, bar) = (ff.row_sum(i), ff.row_sum_bar(i));
+            over_one(sum, bar, k).then_some((i, sum, bar))
         })
         .collect()
 }
@@ -125,22 +126,23 @@ fn no_row_is_over_one_beyond_its_bars_where_patches_touch() {
             let (ff, _, _) =
                 pipeline::form_factors(&patches, &est, 1, &Quiet).expect("form factors");
             // Rows within 3 of their bars of the exact rows (t with 3 degrees of freedom for
-            // 4 replicates: 94.2% of honest rows are).
+            // 4 replicates: 94.2% of honest rows are; bounds count once, and the reference's
+            // own bound is added).
             let n = ff.len();
             let covered = (0..n)
                 .filter(|&i| {
                     let err = (ff.row_sum(i) - exact.row_sum(i)).abs();
-                    err <= 3.0 * ff.row_sum_stderr(i) + 1e-6
+                    err <= ff.row_sum_bar(i).allowance(3.0) + exact.row_sum_bar(i).bound
                 })
                 .count() as f64
                 / n as f64;
             let over = rows_over(&ff, 3.0);
             let beyond = ff.row_over_one_beyond_chance();
             let worst = (0..ff.len())
-                .map(|i| (ff.row_sum(i), ff.row_sum_stderr(i)))
-                .fold((0.0, 0.0), |w, r| if r.0 > w.0 { r } else { w });
+                .map(|i| (ff.row_sum(i), ff.row_sum_bar(i)))
+                .fold((0.0, Bar::ZERO), |w, r| if r.0 > w.0 { r } else { w });
             eprintln!(
-                "{scene} {res:?} {}: largest row {:.4} ± {:.1e}, {} rows over 1 beyond 3 bars, \
+                "{scene} {res:?} {}: largest row {:.4} {}, {} rows over 1 beyond 3 bars, \
                  beyond chance: {:?}, rows within 3 bars of exact {:.1}%",
                 ff.estimator,
                 worst.0,

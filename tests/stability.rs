@@ -362,10 +362,10 @@ f 17 21 20 22
     ] {
         let (patches, ff) = factors(&scene, Resolution::MaxEdge(0.5), &est);
         for i in 0..ff.len() {
-            let (s, se) = (ff.row_sum(i), ff.row_sum_stderr(i));
+            let (s, bar) = (ff.row_sum(i), ff.row_sum_bar(i));
             assert!(
-                s >= 0.0 && s <= 1.0 + 5.0 * se + 1e-3,
-                "{}: row {i} sums to {s} ± {se}",
+                s >= 0.0 && s <= 1.0 + bar.allowance(5.0) + 1e-3,
+                "{}: row {i} sums to {s} {bar}",
                 ff.estimator
             );
         }

@@ -215,7 +215,7 @@ fn a_stored_row_over_one_beyond_its_bar_is_refused_unless_repaired() {
     // Row 7 scaled to sum 1 + 12 of its standard errors (at least 1.01), every entry
     // still in [0, 1]: a valid, hashed folder whose physics is wrong.
     let (lo, hi) = (ff.f.indptr().index(7), ff.f.indptr().index(8));
-    let (sum, se) = (ff.row_sum(7), ff.row_sum_stderr(7));
+    let (sum, se) = (ff.row_sum(7), ff.row_sum_bar(7).magnitude());
     let target = 1.0 + (12.0 * se).max(0.01);
     assert!(sum > 0.5 && target < 1.5, "row 7: {sum} ± {se}");
     for v in &mut ff.f.data_mut()[lo..hi] {
@@ -590,4 +590,67 @@ fn scipy_reads_from_npz_the_matrix_mmread_reads_from_text() {
     assert_eq!(out.status.code(), Some(1), "{stdout}");
     assert!(stdout.contains("F.npz vs F.mtx: DIFFERENT"), "{stdout}");
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The semi-analytic estimator on the Cornell box makes both kinds of bar: bounds on the
+/// pairs nothing can block, standard errors on the others. Both layouts keep them apart
+/// (`stderr` and `bound`, each 0 where the other holds) and read them back bit for bit; a
+/// folder without a `bound` file (written before bounds were told apart) reads its
+/// `stderr` as standard errors.
+#[test]
+fn bounds_and_standard_errors_round_trip_apart() {
+    use radiosity::matrix::Bar;
+    let est = EstimatorChoice::SemiAnalytic {
+        points: 2,
+        rays: 2,
+        replicates: 4,
+        tol: 1e-6,
+    };
+    let scene = Scene::load("cornell").expect("scene");
+    let patches = PatchSet::build(&scene, Resolution::Patches(80)).expect("patches");
+    let (ff, _, _) = pipeline::form_factors(&patches, &est, 3, &Quiet).expect("factors");
+    let bars: Vec<Bar> = ff.se.iter().map(|&s| Bar::of(s)).collect();
+    let bounded = bars.iter().filter(|b| b.bound > 0.0).count();
+    let random = bars.iter().filter(|b| b.se > 0.0).count();
+    assert!(
+        bounded > 100 && random > 100,
+        "{bounded} bounds, {random} errors"
+    );
+    for format in [store::Format::Mtx, store::Format::Npz] {
+        let dir = temp_dir(&format!("bounds-{format:?}"));
+        pipeline::factors_within(
+            "cornell",
+            Resolution::Patches(80),
+            &est,
+            3,
+            &dir,
+            Repair::None,
+            format,
+            None,
+            false,
+            &Quiet,
+        )
+        .expect("factors");
+        let back = store::read(&dir, &patches).expect("read back");
+        assert_eq!(back.f.data(), ff.f.data(), "{format:?}");
+        assert_eq!(back.se, ff.se, "{format:?}");
+        if format == store::Format::Mtx {
+            let text = std::fs::read_to_string(dir.join("bound.mtx")).expect("bound.mtx");
+            assert!(text.lines().nth(2).unwrap().contains("add linearly"));
+            // Without its bound file (and its hash), the folder is an older one: the
+            // bounded entries read as standard error 0.
+            std::fs::remove_file(dir.join("bound.mtx")).expect("remove");
+            let prov = dir.join("provenance.json");
+            let mut json: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(&prov).expect("read")).unwrap();
+            json["sha256"].as_object_mut().unwrap().remove("bound.mtx");
+            std::fs::write(&prov, serde_json::to_string_pretty(&json).unwrap()).unwrap();
+            let old = store::read(&dir, &patches).expect("an older folder reads");
+            for (a, b) in old.se.iter().zip(&ff.se) {
+                let want = if b.is_sign_negative() { 0.0 } else { *b };
+                assert_eq!(*a, want);
+            }
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -183,13 +183,13 @@ fn repairs_stay_within_error_bars_on_the_noisy_closed_cube() {
         for (i, row) in ff.f.outer_iterator().enumerate() {
             assert!((rep.row_sum(i) - 1.0).abs() < 1e-9);
             for (j, &f) in row.iter() {
-                let se = ff.stderr(i, j);
+                let se = ff.bar(i, j).magnitude();
                 let g = rep.get(i, j);
                 // A row whose sum misses 1 by more than 3 of its own standard errors is
                 // inconsistent with its error bars (the area estimator's heavy tail on
                 // adjacent patches): closure must move it further, and says so in the
                 // report's max shift. Elsewhere the repair stays within 3 SE.
-                let consistent = (ff.row_sum(i) - 1.0).abs() <= 3.0 * ff.row_sum_stderr(i);
+                let consistent = (ff.row_sum(i) - 1.0).abs() <= ff.row_sum_bar(i).allowance(3.0);
                 assert!(
                     !consistent || (g - f).abs() <= 3.0 * se + 1e-15,
                     "{} ({i}, {j}): {f} -> {g}, se {se}",

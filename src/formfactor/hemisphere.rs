@@ -25,6 +25,21 @@
 //! per-thread array kept zero between rows (a patch's replicates side by side), and the
 //! patches hit are found by a scan of the tallies (small scenes) or marked in a bit set as
 //! they come (large ones, whose rows then cost one bit per patch they do not hit).
+//!
+//! **Patches no ray hit.** A row stores only the patches its `N = strata² × replicates`
+//! rays hit. A patch no ray hit is not known to be hidden: its factor is estimated as 0,
+//! and a factor below about `1/N` is missed by most rows of rays. Such a pair's bar is the
+//! Jeffreys bar of a fraction seen 0 times in `N` trials, [`crate::sampling::fraction_se`]
+//! `(0, N) ≈ 0.71 / N`, never 0 ([`Estimator::unresolved`], kept once for the whole matrix
+//! as [`crate::matrix::FormFactors::unresolved`]). It is also the bar of the sum of all of
+//! a row's unhit factors, since together they too were hit 0 times in the same `N` rays:
+//! the *unresolved mass* of the row. One number serves every pair and row, because `N` is
+//! the same for every row: no entry is stored for pairs no ray hit (storing one per pair
+//! would fill the matrix, `n²` entries), and no per-pair test of whether the two can see
+//! each other is run (it would cost what the rays save). The bar is one-sided (a factor is
+//! `>= 0`, the estimate 0), so it widens the lower side of a row sum, not the upper: it
+//! does not excuse a row over 1. For a one-sided 95% bound, `1 - 0.05^(1/N) ≈ 3 / N` (the
+//! rule of three) is `4.2` such bars.
 
 use glam::Vec3;
 
@@ -98,6 +113,11 @@ impl Estimator for Hemisphere {
             "hemisphere(rays={}x{}x{})",
             self.strata, self.strata, self.replicates
         )
+    }
+
+    fn unresolved(&self) -> f64 {
+        let n = self.strata.max(1).pow(2) * self.replicates.max(2);
+        fraction_se(0.0, n as f64)
     }
 
     fn replicates(&self) -> usize {

@@ -134,6 +134,12 @@ pub trait Estimator: Sync {
     fn replicates(&self) -> usize {
         0
     }
+    /// The bar of an entry the estimator did not store, and of the sum of all of a row's
+    /// unstored entries ([`FormFactors::unresolved`]): 0 for estimators that look at every
+    /// pair; for hemisphere shooting the bar of a fraction of rays no ray hit.
+    fn unresolved(&self) -> f64 {
+        0.0
+    }
     /// Computes row `i` (only `j > i` when [`Estimator::upper_only`]) into `row`, which
     /// arrives cleared, working in the driver's `scratch`.
     fn row(&self, ctx: &Context, i: usize, row: &mut Row, scratch: &mut Scratch);
@@ -294,6 +300,7 @@ pub fn compute_timed(
         ctx.seed,
     );
     ff.replicates = est.replicates();
+    ff.unresolved = est.unresolved();
     (ff, split)
 }
 

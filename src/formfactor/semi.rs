@@ -18,7 +18,9 @@
 //! **Provably unoccluded pairs are integrated deterministically, to a tolerance, with no
 //! rays** ([`super::exact`]: Gauss–Legendre of an a-priori order for far pairs,
 //! tanh–sinh where the patches touch, both checked a posteriori); `v = 1` exactly there,
-//! and the reported error is the quadrature's error estimate. With [`Nodes::Stratified`]
+//! and the reported error is a *bound* ([`crate::matrix::Bar`], `bound.mtx`): the
+//! quadrature check's estimate plus rounding ([`super::exact::rounding`]), which sums of
+//! factors add linearly. With [`Nodes::Stratified`]
 //! those pairs use random stratified nodes instead (for studies of the estimator).
 //!
 //! A patch k can block a segment from `x ∈ P_i` to `y ∈ P_j` only if it meets the convex
@@ -439,17 +441,18 @@ impl SemiAnalytic {
         } else {
             (i, j)
         };
-        let (value, err) = if free && self.nodes == Nodes::Gauss {
-            let got = self.exact_pair(p, e, r, if e == i { Some(own) } else { None });
-            (got.value, got.err)
-        } else {
-            self.sampled_pair(ctx, (i, j), (e, r), free, row, tracer, scratch)
-        };
         let area_i = p.area[i];
+        if free && self.nodes == Nodes::Gauss {
+            // Deterministic: the error is bounded, not random ([`crate::matrix::Bar`]).
+            let got = self.exact_pair(p, e, r, if e == i { Some(own) } else { None });
+            return (got.value > 0.0)
+                .then(|| Entry::bounded(j as u32, got.value / area_i, got.err / area_i));
+        }
+        let (value, se) = self.sampled_pair(ctx, (i, j), (e, r), free, row, tracer, scratch);
         (value > 0.0).then(|| Entry {
             j: j as u32,
             f: value / area_i,
-            se: err / area_i,
+            se: se / area_i,
         })
     }
 

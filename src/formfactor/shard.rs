@@ -523,6 +523,7 @@ fn assemble(
     drop(rows);
     let mut ff = csr.finish(area.clone(), rays, seconds, est.name(), ctx.seed);
     ff.replicates = est.replicates();
+    ff.unresolved = est.unresolved();
     ff
 }
 

@@ -191,9 +191,10 @@ pub struct Report {
     /// Entries of the leaves' gather lists (their ancestor chains' links).
     pub gather: usize,
     /// Largest factor sum of a visible leaf (its gather list), and that sum's error bar.
-    pub max_row_sum: (f64, f64),
-    /// Visible leaves whose factor sum exceeds 1 by more than 3 of its error bars (the
-    /// quadrature bounds add linearly, the visibility standard errors in quadrature).
+    pub max_row_sum: (f64, crate::matrix::Bar),
+    /// Visible leaves whose factor sum exceeds 1 by more than 3 standard errors plus its
+    /// bound ([`crate::matrix::over_one`]: the quadrature bounds add linearly, the
+    /// visibility standard errors in quadrature).
     pub rows_over_one: usize,
     /// Rays cast in all.
     pub rays: u64,
@@ -336,13 +337,13 @@ pub fn run(
             report.evals += cost.evals;
             report.rays += cost.rays;
             report.gather = gather.len();
-            report.max_row_sum = (0.0, 0.0);
+            report.max_row_sum = (0.0, crate::matrix::Bar::ZERO);
             report.rows_over_one = 0;
             for &(sum, bar) in &gather.row_sum {
                 if sum > report.max_row_sum.0 {
                     report.max_row_sum = (sum, bar);
                 }
-                if sum > 1.0 + 3.0 * bar {
+                if crate::matrix::over_one(sum, bar, 3.0) {
                     report.rows_over_one += 1;
                 }
             }
@@ -732,7 +733,13 @@ pub fn gather_lists(
             var += se * se;
         }
         g.start.push(g.src.len());
-        g.row_sum.push((sum, bound + var.sqrt()));
+        g.row_sum.push((
+            sum,
+            crate::matrix::Bar {
+                se: var.sqrt(),
+                bound,
+            },
+        ));
     }
     (g, cost)
 }

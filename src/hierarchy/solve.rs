@@ -87,8 +87,9 @@ pub struct Gather {
     /// Factor of each entry (leaf to source, visibility included).
     pub f: Vec<f64>,
     /// Per leaf: the sum of its factors and its error bar (the entries' quadrature bounds
-    /// added linearly, plus their visibility standard errors added in quadrature).
-    pub row_sum: Vec<(f64, f64)>,
+    /// added linearly, their visibility standard errors in quadrature:
+    /// [`crate::matrix::Bar`]).
+    pub row_sum: Vec<(f64, crate::matrix::Bar)>,
 }
 
 impl Gather {

@@ -126,8 +126,10 @@ pub struct SurfaceInfo {
 }
 
 /// Writes `surfaces.csv`: `surface,patches,area,emissivity,condition,given,T_mean_K,T_se,
-/// J_mean,G_mean,q_W_m2,Q_W,Q_se`, one row per surface, then `[total]` (every patch) and
-/// `[environment]` (the net power to the environment, `Q` column).
+/// J_mean,G_mean,q_W_m2,Q_W,Q_se,Q_bound`, one row per surface, then `[total]` (every patch)
+/// and `[environment]` (the net power to the environment, `Q` column). `Q_se` is the
+/// standard error propagated from the factors' standard errors, `Q_bound` the bound
+/// propagated from their bounds (add them as `k Q_se + Q_bound`: [`crate::matrix::Bar`]).
 pub fn write_surfaces(
     path: &Path,
     info: &[SurfaceInfo],
@@ -136,13 +138,13 @@ pub fn write_surfaces(
 ) -> Result<()> {
     let mut o = String::from(
         "surface,patches,area,emissivity,condition,given,T_mean_K,T_se,J_mean_W_m2,\
-         G_mean_W_m2,q_W_m2,Q_W,Q_se\n",
+         G_mean_W_m2,q_W_m2,Q_W,Q_se,Q_bound\n",
     );
     for (s, r) in info.iter().zip(results) {
         let (kind, given) = condition(s.boundary);
         let _ = writeln!(
             o,
-            "{},{},{:.10e},{},{kind},{given},{:.10e},{:.3e},{:.10e},{:.10e},{:.10e},{:.10e},{:.3e}",
+            "{},{},{:.10e},{},{kind},{given},{:.10e},{:.3e},{:.10e},{:.10e},{:.10e},{:.10e},{:.3e},{:.3e}",
             s.name,
             s.patches,
             r.area,
@@ -153,18 +155,20 @@ pub fn write_surfaces(
             r.g,
             r.flow.q / r.area,
             r.flow.q,
-            r.flow.se
+            r.flow.se,
+            r.flow.bound
         );
     }
     if let Some(t) = results.get(info.len()) {
         let _ = writeln!(
             o,
-            "[total],{},{:.10e},,,,,,,,{:.10e},{:.10e},{:.3e}",
+            "[total],{},{:.10e},,,,,,,,{:.10e},{:.10e},{:.3e},{:.3e}",
             info.iter().map(|s| s.patches).sum::<usize>(),
             t.area,
             t.flow.q / t.area,
             t.flow.q,
-            t.flow.se
+            t.flow.se,
+            t.flow.bound
         );
     }
     let _ = writeln!(

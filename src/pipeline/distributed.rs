@@ -25,7 +25,7 @@ use crate::cluster::Cluster;
 use crate::error::{Error, Result};
 use crate::formfactor::shard::{self, RankReport, Share, Target};
 use crate::formfactor::Context;
-use crate::matrix::{repair_rows_from, Block, Diagnostics, FormFactors};
+use crate::matrix::{repair_rows_from, sum_bar, Bar, Block, Diagnostics, FormFactors};
 use crate::mesh::PatchSet;
 use crate::output::{self, FolderKind};
 use crate::repair::{check_rows, Bounds, Repair, RepairReport, RowOver};
@@ -129,7 +129,7 @@ fn all_bounds(local: &Bounds, cluster: &dyn Cluster) -> Result<Bounds> {
         local.out_of_range.len() as f64,
     ];
     for r in &local.rows_over_one {
-        mine.extend([r.row as f64, r.sum, r.se]);
+        mine.extend([r.row as f64, r.sum, r.bar.se, r.bar.bound]);
     }
     for &(i, j, f) in &local.out_of_range {
         mine.extend([i as f64, j as f64, f]);
@@ -139,14 +139,17 @@ fn all_bounds(local: &Bounds, cluster: &dyn Cluster) -> Result<Bounds> {
         let v = crate::cluster::bytes_to_f64s(&bytes);
         let (a, b) = (v[0] as usize, v[1] as usize);
         let rest = &v[2..];
-        for t in rest[..3 * a].chunks_exact(3) {
+        for t in rest[..4 * a].chunks_exact(4) {
             all.rows_over_one.push(RowOver {
                 row: t[0] as usize,
                 sum: t[1],
-                se: t[2],
+                bar: Bar {
+                    se: t[2],
+                    bound: t[3],
+                },
             });
         }
-        for t in rest[3 * a..3 * (a + b)].chunks_exact(3) {
+        for t in rest[4 * a..4 * a + 3 * b].chunks_exact(3) {
             all.out_of_range.push((t[0] as usize, t[1] as usize, t[2]));
         }
     }
@@ -190,27 +193,24 @@ fn solve_block(
                 block.f.indptr().index(rep.worst.0 - block.lo),
                 block.f.indptr().index(rep.worst.0 - block.lo + 1),
             );
-            let se = block.se[a..z]
-                .iter()
-                .map(|&s| f64::from(s) * f64::from(s))
-                .sum::<f64>()
-                .sqrt();
+            let bar = sum_bar(&block.se[a..z]);
             [
                 rep.rows.len() as f64,
                 rep.worst_gain,
                 rep.worst.0 as f64,
                 rep.worst.1,
-                se,
+                bar.se,
+                bar.bound,
             ]
         }
-        None => [0.0; 5],
+        None => [0.0; 6],
     };
     let k = cluster.size();
-    let mut all = vec![0.0; 5 * k];
-    cluster.all_gather_f64(&mine, &vec![5; k], &mut all)?;
-    let rows: f64 = all.chunks_exact(5).map(|v| v[0]).sum();
+    let mut all = vec![0.0; 6 * k];
+    cluster.all_gather_f64(&mine, &vec![6; k], &mut all)?;
+    let rows: f64 = all.chunks_exact(6).map(|v| v[0]).sum();
     let worst = all
-        .chunks_exact(5)
+        .chunks_exact(6)
         .filter(|v| v[0] > 0.0)
         .fold(None::<&[f64]>, |w, v| match w {
             Some(w) if v[1] <= w[1] => Some(w),
@@ -234,9 +234,16 @@ fn solve_block(
             0,
             format!(
                 "{} rows of F had rho * (row sum) >= 1 (worst {:.4} at patch {}, row sum {:.4}, \
-                 row-sum std. error {:.1e}) and were scaled to sum to 1, so that the solve stays \
+                 row-sum bar {}) and were scaled to sum to 1, so that the solve stays \
                  bounded: raise the samples if this is more than noise",
-                rows as usize, w[1], w[2] as usize, w[3], w[4]
+                rows as usize,
+                w[1],
+                w[2] as usize,
+                w[3],
+                Bar {
+                    se: w[4],
+                    bound: w[5]
+                }
             ),
         );
     }
@@ -285,14 +292,21 @@ fn bake_rows(
     let bounds = timer.run("repair", 0, || {
         all_bounds(&check_rows(&block.f, &block.se, block.lo), cluster)
     })?;
-    let (diagnostics, max_row_sum_stderr) = timer.run("diagnostics", 0, || {
+    let (diagnostics, max_row_sum_bar) = timer.run("diagnostics", 0, || {
         let local = block.diagnostics;
         let mut nnz = [block.f.nnz() as u64];
         cluster.all_sum_u64(&mut nnz)?;
         let d = all_diagnostics(local, (nnz[0] as usize, n), cluster)?;
-        let mut worst = [block.max_row_sum_stderr()];
+        let w = block.max_row_sum_bar();
+        let mut worst = [w.se, w.bound];
         cluster.all_max(&mut worst)?;
-        Ok::<_, Error>((d, worst[0]))
+        Ok::<_, Error>((
+            d,
+            Bar {
+                se: worst[0],
+                bound: worst[1],
+            },
+        ))
     })?;
     let traffic0 = cluster.traffic();
     let t = std::time::Instant::now();
@@ -323,7 +337,7 @@ fn bake_rows(
         rays,
         estimator: cfg.estimator.build().name(),
         diagnostics,
-        max_row_sum_stderr,
+        max_row_sum_bar,
         repair: RepairReport {
             repair: Repair::None,
             after: bounds.clone(),

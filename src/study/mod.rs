@@ -101,8 +101,11 @@ pub struct Run {
     pub seconds: f64,
     /// Estimated `F_ij`.
     pub estimate: f64,
-    /// Its standard error.
+    /// Its standard error (0 where its error is deterministic).
     pub stderr: f64,
+    /// Bound on its deterministic error (the semi-analytic quadrature of unoccluded pairs;
+    /// 0 where its error is random: [`crate::matrix::Bar`]).
+    pub bound: f64,
     /// Exact `F_ij`.
     pub exact: f64,
 }
@@ -167,11 +170,11 @@ pub fn run_one(p: &Prepared, kind: Kind, budget: usize, seed: u64) -> Run {
             area.pair_with(&ctx, a, b, &mut row.rays, &p.vis, &mut s)
                 .map(|e| {
                     if a == i {
-                        (e.f, e.se)
+                        (e.f, e.bar())
                     } else {
                         // Stored as F_ab with a = j: F_ij = F_ji A_j / A_i.
                         let s = p.patches.area[j] / p.patches.area[i];
-                        (e.f * s, e.se * s)
+                        (e.f * s, e.bar().times(s))
                     }
                 })
         }
@@ -180,11 +183,11 @@ pub fn run_one(p: &Prepared, kind: Kind, budget: usize, seed: u64) -> Run {
             row.entries
                 .iter()
                 .find(|e| e.j as usize == j)
-                .map(|e| (e.f, e.se))
+                .map(|e| (e.f, e.bar()))
         }
     };
     let seconds = start.elapsed().as_secs_f64();
-    let (estimate, stderr) = entry.unwrap_or((0.0, 0.0));
+    let (estimate, bar) = entry.unwrap_or((0.0, crate::matrix::Bar::ZERO));
     Run {
         config: p.config.name,
         kind,
@@ -193,7 +196,8 @@ pub fn run_one(p: &Prepared, kind: Kind, budget: usize, seed: u64) -> Run {
         rays: row.rays,
         seconds,
         estimate,
-        stderr,
+        stderr: bar.se,
+        bound: bar.bound,
         exact: p.config.exact,
     }
 }
@@ -281,8 +285,16 @@ pub struct Report {
     pub seconds: f64,
 }
 
-/// Configurations on which the calibration is measured.
-pub const CALIBRATION_CONFIGS: [&str; 4] = ["far", "near", "occluded", "adjacent"];
+/// Configurations on which the calibration is measured: all seven.
+pub const CALIBRATION_CONFIGS: [&str; 7] = [
+    "far",
+    "near",
+    "occluded",
+    "adjacent",
+    "grazing",
+    "small-large",
+    "shelf",
+];
 
 /// Runs the convergence sweep: every configuration, estimator, budget and seed.
 pub fn sweep(prepared: &[Prepared], budgets: &[usize], seeds: u64) -> Vec<Run> {
@@ -434,12 +446,13 @@ fn rms_by_budget(rs: &[&Run]) -> Vec<(f64, f64)> {
 
 /// Writes the runs as CSV.
 pub fn write_csv(path: &Path, runs: &[Run]) -> Result<()> {
-    let mut s =
-        String::from("config,estimator,budget,seed,rays,seconds,estimate,stderr,exact,error\n");
+    let mut s = String::from(
+        "config,estimator,budget,seed,rays,seconds,estimate,stderr,exact,error,bound\n",
+    );
     for r in runs {
         let _ = writeln!(
             s,
-            "{},{},{},{},{},{:.6e},{:.12e},{:.6e},{:.12e},{:.6e}",
+            "{},{},{},{},{},{:.6e},{:.12e},{:.6e},{:.12e},{:.6e},{:.6e}",
             r.config,
             r.kind.name(),
             r.budget,
@@ -449,7 +462,8 @@ pub fn write_csv(path: &Path, runs: &[Run]) -> Result<()> {
             r.estimate,
             r.stderr,
             r.exact,
-            r.error()
+            r.error(),
+            r.bound
         );
     }
     write_atomic(path, |tmp| {

@@ -59,12 +59,16 @@
 //!   by one adjoint solve each. With `dM = -diag(r) dF`, `M du = diag(r) dF u`, so
 //!   `dQ_S = sum_ij h_i u_j dF_ij` with `h_i = r_i lambda_i - A_i [i in S]` and
 //!   `M^T lambda = (I - F)^T (A 1_S)`; the variance is the sum over the random variables of
-//!   their sensitivity squared times `s²` ([`surfaces`], [`linear_se`]).
+//!   their sensitivity squared times `s²`, and entries whose error is deterministic (a
+//!   bound `b`, [`crate::matrix::Bar`]) add `|sensitivity| b` to a separate bound, linearly
+//!   ([`surfaces`], [`linear_se`]; [`Flow::bound`]).
 //! - **Per patch** (`J`, `G`, `q`, `T`): by `K` random tangent solves
 //!   ([`Settings::replicates`]): draw `dF` with the entries' standard errors (normal, pairs
 //!   shared as above), solve `M du = diag(r) dF u`, and take the root mean square of the
 //!   resulting changes. These bars are themselves estimates, with a relative spread of about
-//!   `1 / sqrt(2K)` (18% for the default 16).
+//!   `1 / sqrt(2K)` (18% for the default 16). A bounded entry is drawn here with its bound
+//!   as if a standard error ([`crate::matrix::Bar::magnitude`]): these per-patch bars are
+//!   standard errors, and the bounds (1e-6 of a factor by default) are small beside them.
 //!
 //! Neither includes the solver's own error, which its tolerance bounds (the default,
 //! `1e-12` of the largest `|J - E_a|`, is far below any factor's error bar).
@@ -80,7 +84,7 @@
 pub mod bc;
 
 use crate::error::{Error, Result};
-use crate::matrix::{reciprocal_pairs, Csr};
+use crate::matrix::{reciprocal_pairs, Bar, Csr};
 use crate::sampling::Pcg32;
 use crate::scene::Boundary;
 
@@ -98,7 +102,8 @@ pub fn emissive_power(t: f64) -> f64 {
 pub struct Problem<'a> {
     /// `F[i, j]`, by rows (CSR).
     pub f: &'a Csr,
-    /// Standard error of each stored factor, aligned with `f.data()`.
+    /// Error bar of each stored factor, aligned with `f.data()`, in its stored form
+    /// ([`Bar::of`]: a standard error, or a bound).
     pub se: &'a [f32],
     /// Patch areas, m² (or the scene's units squared: fluxes are per unit area).
     pub area: &'a [f64],
@@ -202,8 +207,10 @@ impl Solution {
 pub struct Flow {
     /// Net power leaving the surface, W.
     pub q: f64,
-    /// Its first-order standard error from the factors' error bars (adjoint), W.
+    /// Its first-order standard error from the factors' standard errors (adjoint), W.
     pub se: f64,
+    /// Its first-order bound from the factors' bounds (adjoint, added linearly), W.
+    pub bound: f64,
 }
 
 impl Problem<'_> {
@@ -245,10 +252,10 @@ impl Problem<'_> {
                 f.data()[k]
             )));
         }
-        if let Some(k) = self.se.iter().position(|v| !(v.is_finite() && *v >= 0.0)) {
+        if let Some(k) = self.se.iter().position(|&v| !Bar::of(v).is_valid()) {
             return Err(Error::Config(format!(
-                "standard error {k} is {}, not a finite number >= 0",
-                self.se[k]
+                "error bar {k} is {}, not a finite number >= 0",
+                Bar::of(self.se[k])
             )));
         }
         for i in 0..n {
@@ -405,12 +412,8 @@ fn check_grounded(p: &Problem, f: &Csr, r: &[f64]) -> Result<()> {
     let mut grounded = vec![false; n];
     let mut stack = Vec::new();
     for i in 0..n {
-        let s_se: f64 = p.se[ptr[i]..ptr[i + 1]]
-            .iter()
-            .map(|&s| f64::from(s) * f64::from(s))
-            .sum::<f64>()
-            .sqrt();
-        if r[i] < 1.0 || 1.0 - sums[i] > (3.0 * s_se).max(1e-9) {
+        let bar = crate::matrix::sum_bar(&p.se[ptr[i]..ptr[i + 1]]);
+        if r[i] < 1.0 || 1.0 - sums[i] > bar.allowance(3.0).max(1e-9) {
             grounded[i] = true;
             stack.push(i);
         }
@@ -546,7 +549,7 @@ fn tangent_replicates(p: &Problem, settings: &Settings, sol: &mut Solution) -> R
                     // The pair's variable is drawn at its lower-row entry; the mirror
                     // follows by reciprocity.
                     Some(m) if jj < i => df[e] = df[m] * p.area[jj] / p.area[i],
-                    _ => df[e] = f64::from(p.se[e]) * normal(&mut rng),
+                    _ => df[e] = Bar::of(p.se[e]).magnitude() * normal(&mut rng),
                 }
             }
         }
@@ -597,16 +600,17 @@ fn tangent_replicates(p: &Problem, settings: &Settings, sol: &mut Solution) -> R
     Ok(())
 }
 
-/// The first-order standard error of a quantity `y` with `dy = a . du + d . (dF u)`, by one
-/// adjoint solve `M^T lambda = a`: `dy = sum_ij h_i u_j dF_ij` with `h = diag(r) lambda + d`
-/// (module docs), summed over the random variables of `F` (reciprocal pairs coupled).
+/// The first-order bar of a quantity `y` with `dy = a . du + d . (dF u)`, by one adjoint
+/// solve `M^T lambda = a`: `dy = sum_ij h_i u_j dF_ij` with `h = diag(r) lambda + d`
+/// (module docs), summed over the random variables of `F` (reciprocal pairs coupled): the
+/// standard errors in quadrature, the bounds linearly.
 pub fn linear_se(
     p: &Problem,
     sol: &Solution,
     a: &[f64],
     d: &[f64],
     settings: &Settings,
-) -> Result<f64> {
+) -> Result<Bar> {
     let n = p.len();
     let f = &sol.f;
     // M^T = I - F^T diag(r): Gauss–Seidel on x - 1 (F^T diag(r)) x = a.
@@ -630,24 +634,26 @@ pub fn linear_se(
     let ptr = f.indptr();
     let ptr = ptr.to_proper();
     let ind = f.indices();
-    let mut var = 0.0;
+    let (mut var, mut bound) = (0.0, 0.0);
     for i in 0..n {
         for e in ptr[i]..ptr[i + 1] {
             let j = ind[e] as usize;
             let g = h[i] * sol.u[j];
-            let se = f64::from(p.se[e]);
-            match pairs[e] {
+            let bar = Bar::of(p.se[e]);
+            let g = match pairs[e] {
                 // Counted with its mirror, at the entry above the diagonal.
-                Some(_) if j < i => {}
-                Some(_) => {
-                    let g2 = g + h[j] * sol.u[i] * p.area[i] / p.area[j];
-                    var += g2 * g2 * se * se;
-                }
-                None => var += g * g * se * se,
-            }
+                Some(_) if j < i => continue,
+                Some(_) => g + h[j] * sol.u[i] * p.area[i] / p.area[j],
+                None => g,
+            };
+            var += g * g * bar.se * bar.se;
+            bound += g.abs() * bar.bound;
         }
     }
-    Ok(var.sqrt())
+    Ok(Bar {
+        se: var.sqrt(),
+        bound,
+    })
 }
 
 /// What a surface (a set of patches) does: net heat flow and mean temperature with their
@@ -700,7 +706,7 @@ pub fn surfaces(
         let fta = mul(&ft, &a1);
         let w: Vec<f64> = (0..n).map(|i| a1[i] - fta[i]).collect();
         let d: Vec<f64> = a1.iter().map(|v| -v).collect();
-        let se = linear_se(p, sol, &w, &d, settings)?;
+        let bar = linear_se(p, sol, &w, &d, settings)?;
         let c: Vec<f64> = (0..n)
             .map(|i| match p.boundary[i] {
                 Boundary::Flux(_) if sol.t[i] > 0.0 => {
@@ -710,12 +716,16 @@ pub fn surfaces(
             })
             .collect();
         let se_t = if c.iter().any(|&v| v != 0.0) {
-            linear_se(p, sol, &c, &vec![0.0; n], settings)?
+            linear_se(p, sol, &c, &vec![0.0; n], settings)?.magnitude()
         } else {
             0.0
         };
         out.push(SurfaceResult {
-            flow: Flow { q, se },
+            flow: Flow {
+                q,
+                se: bar.se,
+                bound: bar.bound,
+            },
             t: mean(&sol.t),
             se_t,
             area,
