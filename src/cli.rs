@@ -268,6 +268,15 @@ enum MethodArg {
     Hierarchical,
 }
 
+/// On or off.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum Switch {
+    /// On.
+    On,
+    /// Off.
+    Off,
+}
+
 #[derive(Args, Debug)]
 struct HierarchyArgs {
     /// Radiosity method.
@@ -282,6 +291,10 @@ struct HierarchyArgs {
     /// Hierarchical: visibility strata per side of each link (rays² rays).
     #[arg(long, default_value_t = 4)]
     link_rays: usize,
+    /// Hierarchical: start from a cluster tree over the input faces (links between groups
+    /// of faces far enough apart) instead of a link between every pair of them.
+    #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::CLUSTERS { Switch::On } else { Switch::Off })]
+    clusters: Switch,
     /// Hierarchical: cap on refine-and-solve passes.
     #[arg(long, default_value_t = 8)]
     max_passes: usize,
@@ -724,6 +737,7 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
                 quadrature: args.hier.link_quadrature,
                 accuracy: args.hier.link_accuracy,
                 seed: args.est.seed,
+                clusters: args.hier.clusters == Switch::On,
                 ..Default::default()
             };
             h.validate()?;

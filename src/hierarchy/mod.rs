@@ -31,6 +31,7 @@
 //! hierarchy and the same bits on any number of threads.
 
 pub mod blockers;
+pub mod clusters;
 pub mod element;
 pub mod leaves;
 pub mod link;
@@ -46,6 +47,7 @@ use crate::sampling::fraction_se;
 use crate::scene::luminance;
 use crate::visibility::Visibility;
 use blockers::Blockers;
+use clusters::{Links, Refiner, Tree};
 use element::Elements;
 use link::{Context, Cost, Link, Tolerance};
 use refine::{Decision, Oracle};
@@ -53,6 +55,9 @@ use solve::{Gather, Materials, SolveStats, State};
 
 /// Default [`Settings::hide`].
 pub const HIDE: f64 = 0.1;
+
+/// Default [`Settings::clusters`].
+pub const CLUSTERS: bool = true;
 
 /// Settings of a hierarchical solution.
 #[derive(Clone, Debug, PartialEq)]
@@ -86,6 +91,9 @@ pub struct Settings {
     pub max_links: usize,
     /// Seed of the random streams.
     pub seed: u64,
+    /// Start from the self-link of a cluster tree over the roots ([`clusters`]) instead of
+    /// a link between every pair of roots.
+    pub clusters: bool,
 }
 
 impl Default for Settings {
@@ -103,6 +111,7 @@ impl Default for Settings {
             max_passes: 8,
             max_links: 40_000_000,
             seed: 1,
+            clusters: CLUSTERS,
         }
     }
 }
@@ -186,8 +195,14 @@ pub struct Report {
     pub links: usize,
     /// Of which partly visible.
     pub partial_links: usize,
-    /// Initial links between roots.
+    /// Initial links: between roots, plus cluster links when clustering.
     pub initial_links: usize,
+    /// Clusters in the tree over the roots (0 without clustering).
+    pub clusters: usize,
+    /// Cluster links at the end.
+    pub cluster_links: usize,
+    /// Node pairs the cluster refinement examined.
+    pub cluster_pairs: usize,
     /// Entries of the leaves' gather lists (their ancestor chains' links).
     pub gather: usize,
     /// Largest factor sum of a visible leaf (its gather list), and that sum's error bar.
@@ -285,11 +300,32 @@ pub fn run(
     }
     let mut b_ref = sum_ea / sum_a / (1.0 - sum_rho / sum_a).max(1e-3);
 
-    // Initial links between every pair of roots.
+    // Initial links: from the top cluster's self-link, or between every pair of roots.
     let n = e.roots as u32;
-    let specs: Vec<(u32, u32)> = (0..n)
-        .flat_map(|r| (0..n).filter(move |&t| t != r).map(move |t| (r, t)))
+    let visible = e.visible_areas();
+    let rho_max: Vec<f64> = rho[..e.roots]
+        .iter()
+        .map(|r| r.iter().copied().fold(0.0, f64::max))
         .collect();
+    let tree = (s.clusters && e.roots >= 2).then(|| Tree::build(&e, &visible, &rho_max));
+    let tree = tree.as_ref();
+    let mut clinks = tree.map_or_else(Links::default, |t| Links::new(t, e.roots));
+    state.pull_clusters(tree, &visible);
+    let specs: Vec<(u32, u32)> = match tree {
+        Some(t) => {
+            let f = refiner(
+                t, &e, &visible, &rho_max, vis, &state, b_ref, s.error * b_ref, s,
+            );
+            let made = clusters::refine(&f, vec![(clusters::top(t), clusters::top(t))], &mut clinks);
+            report.rays += made.rays;
+            report.cluster_pairs += made.pairs;
+            report.clusters = t.len();
+            made.specs
+        }
+        None => (0..n)
+            .flat_map(|r| (0..n).filter(move |&t| t != r).map(move |t| (r, t)))
+            .collect(),
+    };
     let mut links: Vec<Vec<Link>> = vec![Vec::new(); e.len()];
     {
         let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
@@ -298,14 +334,35 @@ pub fn run(
         report.rays += cost.rays;
         report.evals += cost.evals;
     }
-    report.initial_links = links.iter().map(Vec::len).sum();
+    report.initial_links = links.iter().map(Vec::len).sum::<usize>() + clinks.len();
 
     for pass_no in 0..s.max_passes.max(1) {
         let t0 = Instant::now();
         let eps = s.error * b_ref;
         report.eps = eps;
         let rays_before = report.rays;
-        let refined = refine_links(
+        // Cluster links that today's radiosity puts over the tolerance go down a level.
+        let mut regrouped = 0;
+        if let (Some(t), true) = (tree, pass_no > 0) {
+            let visible = e.visible_areas();
+            let (rho, _) = materials(&e, &material);
+            let rho_max: Vec<f64> = rho[..e.roots]
+                .iter()
+                .map(|r| r.iter().copied().fold(0.0, f64::max))
+                .collect();
+            let f = refiner(t, &e, &visible, &rho_max, vis, &state, 0.0, eps, s);
+            let (made, replaced) = clusters::recheck(&f, &mut clinks);
+            regrouped = replaced;
+            report.rays += made.rays;
+            report.cluster_pairs += made.pairs;
+            let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
+            let tols = tolerances(&made.specs, &rho, &state.b, eps, s, b_ref);
+            let cost = evaluate_into(&ctx, &made.specs, &tols, &mut links);
+            report.rays += cost.rays;
+            report.evals += cost.evals;
+        }
+        let refined = regrouped
+            + refine_links(
             &mut e,
             &mut links,
             &mut state,
@@ -331,8 +388,14 @@ pub fn run(
         let last = (refined == 0 && pass_no > 0) || pass_no + 1 == s.max_passes.max(1);
         let stats = if last {
             let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
-            let (gather, cost) =
-                gather_lists(&ctx, &links, &rho, &state, eps, s.accuracy, s.descend);
+            let leaves: Vec<u32> = e.leaves().collect();
+            let extra = match tree {
+                Some(t) => clusters::expand(t, &e, &clinks, &leaves),
+                None => Vec::new(),
+            };
+            let (gather, cost) = gather_lists(
+                &ctx, &links, &extra, &rho, &state, eps, s.accuracy, s.descend,
+            );
             report.evals += cost.evals;
             report.rays += cost.rays;
             report.gather = gather.len();
@@ -348,6 +411,7 @@ pub fn run(
             }
             solve::solve(
                 &e,
+                tree,
                 &gather,
                 &m,
                 &mut state,
@@ -356,8 +420,15 @@ pub fn run(
                 s.max_iterations,
             )
         } else {
+            let roots: Vec<u32> = (0..e.roots as u32).collect();
+            let extra = match tree {
+                Some(t) => clusters::expand(t, &e, &clinks, &roots),
+                None => Vec::new(),
+            };
             solve::solve_push(
                 &e,
+                tree,
+                &extra,
                 &links,
                 &m,
                 &mut state,
@@ -367,6 +438,7 @@ pub fn run(
             )
         };
         solve::estimate_spread(&e, &links, &rho, &mut state);
+        state.pull_clusters(tree, &e.visible_areas());
         b_ref = mean_radiosity(&e, &state).max(f64::MIN_POSITIVE);
         let pass = Pass {
             refined,
@@ -399,6 +471,7 @@ pub fn run(
             ));
         }
     }
+    report.cluster_links = clinks.len();
     finish_report(
         &e,
         &links,
@@ -415,6 +488,36 @@ pub fn run(
         state,
         report,
     })
+}
+
+/// The cluster refinement's view of the current solution.
+#[allow(clippy::too_many_arguments)]
+fn refiner<'a>(
+    tree: &'a Tree,
+    e: &'a Elements,
+    visible: &'a [f64],
+    rho_max: &'a [f64],
+    vis: &'a Visibility,
+    state: &'a State,
+    floor: f64,
+    eps: f64,
+    s: &Settings,
+) -> Refiner<'a> {
+    Refiner {
+        tree,
+        elements: e,
+        visible,
+        rho_max,
+        vis,
+        b: &state.b,
+        spread: &state.spread,
+        clusters: &state.clusters,
+        floor,
+        eps,
+        hide: s.hide,
+        rays: s.rays,
+        seed: s.seed,
+    }
 }
 
 /// Reflectance and emission per element, from its root's material.
@@ -561,9 +664,11 @@ struct Entry {
 ///
 /// Factors are integrated to `accuracy × eps / (ρ_l B_s)` (as in `tolerances`). Returns
 /// the lists and the work spent.
+#[allow(clippy::too_many_arguments)]
 pub fn gather_lists(
     ctx: &Context,
     links: &[Vec<Link>],
+    extra: &[Vec<(u32, f64, f64)>],
     rho: &[[f64; 3]],
     state: &State,
     eps: f64,
@@ -721,7 +826,7 @@ pub fn gather_lists(
     };
     let mut cost = Cost::default();
     g.start.push(0);
-    for (list, c) in per_leaf {
+    for (k, (list, c)) in per_leaf.into_iter().enumerate() {
         cost += c;
         let (mut sum, mut bound, mut var) = (0.0, 0.0, 0.0);
         for (s, f, q, se) in list {
@@ -729,6 +834,12 @@ pub fn gather_lists(
             g.f.push(f);
             sum += f;
             bound += q;
+            var += se * se;
+        }
+        for &(s, f, se) in extra.get(k).map_or(&[][..], Vec::as_slice) {
+            g.src.push(s);
+            g.f.push(f);
+            sum += f;
             var += se * se;
         }
         g.start.push(g.src.len());
