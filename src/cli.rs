@@ -1161,11 +1161,26 @@ fn dispatch(cli: &Cli, matches: &clap::ArgMatches, cluster: &dyn Cluster) -> Res
         }
         Command::Suite(cmd) => suite(cmd),
         Command::Scenes => {
-            let width = builtin::NAMES.iter().map(|n| n.len()).max().unwrap_or(0);
+            use radiosity::scene::generated;
+            let width = builtin::NAMES
+                .iter()
+                .chain(generated::LISTED)
+                .map(|n| n.len())
+                .max()
+                .unwrap_or(0);
             for name in builtin::NAMES {
                 let what = builtin::describe(name).unwrap_or_default();
                 println!("{name:width$}  {what}");
             }
+            for name in generated::LISTED {
+                let what = generated::describe(name).unwrap_or_default();
+                println!("{name:width$}  {what}");
+            }
+            println!(
+                "(generated: room-spheres-N for any N in 1..={}, {} triangles per sphere)",
+                generated::MAX_SPHERES,
+                generated::SPHERE_TRIANGLES
+            );
             Ok(())
         }
     }
