@@ -297,22 +297,6 @@ pub struct ClusterLink {
     pub rho: f64,
 }
 
-impl ClusterLink {
-    /// The factor of a receiving point at `x` with normal `n` (see the module docs).
-    pub fn factor(&self, x: DVec3, n: DVec3) -> f64 {
-        let d = self.at - x;
-        let r2 = d.length_squared();
-        if r2 <= 0.0 {
-            return 0.0;
-        }
-        let cos = n.dot(d) / r2.sqrt();
-        if cos <= 0.0 {
-            return 0.0;
-        }
-        self.p * cos * self.v / (std::f64::consts::PI * r2)
-    }
-}
-
 /// The cluster links, by receiver.
 #[derive(Clone, Debug, Default)]
 pub struct Links {
@@ -757,13 +741,130 @@ pub fn recheck(f: &Refiner, links: &mut Links) -> (Made, usize) {
     (refine(f, start, links), replaced)
 }
 
+/// Most pieces a link's source is cut into for the gather.
+pub const MAX_PIECES: usize = 64;
+
+/// A piece of a cluster link's source, as the gather sees it: the node, its centre and
+/// its projected area toward the receiver.
+pub type Piece = (u32, DVec3, f64);
+
+/// The pieces of every cluster link's source, by receiver (parallel to [`Links`]).
+#[derive(Clone, Debug, Default)]
+pub struct Pieces {
+    cluster: Vec<Vec<Vec<Piece>>>,
+    root: Vec<Vec<Vec<Piece>>>,
+}
+
+impl Pieces {
+    fn of(&self, n: u32) -> &[Vec<Piece>] {
+        if is_cluster(n) {
+            &self.cluster[(n & !CLUSTER) as usize]
+        } else {
+            &self.root[n as usize]
+        }
+    }
+}
+
+impl Refiner<'_> {
+    /// The source of link `l` into `r` as the gather sees it. A cluster's mean radiosity
+    /// times its projected area is not its exitance toward `r` when its radiosity varies
+    /// with orientation (the tops of spheres under a light are brighter than their
+    /// bottoms, and they are what the ceiling sees): the source is cut into its children,
+    /// each with its own radiosity, centre and projected area, while the share of the
+    /// link it carries times its spread, `ρ_R F_up (P_n / P_S) ΔB_n`, is above
+    /// `descend × eps` (at most [`MAX_PIECES`] pieces), as the element gather does with
+    /// split sources.
+    pub fn pieces(&self, r: u32, l: &ClusterLink, descend: f64) -> Vec<Piece> {
+        let rc = self.shape(r).centre;
+        let mut out = Vec::new();
+        let mut stack = vec![l.src];
+        while let Some(n) = stack.pop() {
+            let c = self.shape(n).centre;
+            let w = (rc - c).normalize_or_zero();
+            let p = self.projected(n, w);
+            if p <= 0.0 {
+                continue;
+            }
+            let ds = self.source(n).1.iter().copied().fold(0.0, f64::max);
+            let share = l.rho * l.f_up * (p / l.p.max(1e-300)).min(1.0) * ds;
+            if is_cluster(n)
+                && share > descend * self.eps
+                && out.len() + stack.len() + 2 <= MAX_PIECES
+            {
+                stack.extend(self.tree.children[(n & !CLUSTER) as usize]);
+            } else {
+                out.push((n, c, p));
+            }
+        }
+        out
+    }
+
+    /// [`Refiner::pieces`] of every link.
+    pub fn all_pieces(&self, links: &Links, descend: f64) -> Pieces {
+        let per = |lists: &[Vec<ClusterLink>], cluster: bool| -> Vec<Vec<Vec<Piece>>> {
+            lists
+                .par_iter()
+                .enumerate()
+                .map(|(k, list)| {
+                    let r = if cluster {
+                        k as u32 | CLUSTER
+                    } else {
+                        k as u32
+                    };
+                    list.iter().map(|l| self.pieces(r, l, descend)).collect()
+                })
+                .collect()
+        };
+        Pieces {
+            cluster: per(&links.cluster, true),
+            root: per(&links.root, false),
+        }
+    }
+}
+
+/// Solid angle of the planar polygon `poly` (corners counter-clockwise from its front,
+/// normal `n`) seen from `y`, 0 when `y` is not in front of it: the sum over a fan of
+/// triangles of Van Oosterom and Strackee's formula ("The solid angle of a plane triangle",
+/// IEEE Trans. Biomed. Eng. 30, 1983), `tan(Ω/2) = |a·(b×c)| / (abc + (a·b)c + (a·c)b +
+/// (b·c)a)` with `a, b, c` the corners relative to `y`.
+pub fn solid_angle(y: DVec3, poly: &[DVec3], n: DVec3) -> f64 {
+    if poly.len() < 3 || n.dot(y - poly[0]) <= 0.0 {
+        return 0.0;
+    }
+    let mut sum = 0.0;
+    for k in 1..poly.len() - 1 {
+        let (a, b, c) = (poly[0] - y, poly[k] - y, poly[k + 1] - y);
+        let (la, lb, lc) = (a.length(), b.length(), c.length());
+        let num = a.dot(b.cross(c)).abs();
+        let den = la * lb * lc + a.dot(b) * lc + a.dot(c) * lb + b.dot(c) * la;
+        sum += 2.0 * num.atan2(den);
+    }
+    sum
+}
+
+/// The factor of element `l` from a piece of a link's source seen through visible
+/// fraction `v`: the piece as a point source of intensity `B P / π` at its centre, so that
+/// the element's mean irradiance is `B P Ω / (π A_l)` with `Ω` the element's solid angle
+/// from that centre ([`solid_angle`]; the element's own extent is integrated exactly, not
+/// sampled at its centre, whose `1/r²` would be biased low by convexity).
+pub fn piece_factor(piece: &Piece, v: f64, e: &Elements, l: u32) -> f64 {
+    let li = l as usize;
+    let a = e.area[li];
+    if a <= 0.0 {
+        return 0.0;
+    }
+    piece.2 * v * solid_angle(piece.1, e.corners(l), e.normal[li]) / (std::f64::consts::PI * a)
+}
+
 /// For each element of `targets`, the cluster links on its root's chain (the root's own
-/// and its clusters') as `(source node, factor, standard error)` at the element's centre
-/// and normal; nothing for buried elements.
+/// and its clusters') as `(source node, factor, standard error)` entries, one per piece of
+/// the link's source ([`Refiner::pieces`], [`piece_factor`]); nothing for buried
+/// elements.
 pub fn expand(
     t: &Tree,
     e: &Elements,
     links: &Links,
+    pieces: &Pieces,
     targets: &[u32],
 ) -> Vec<Vec<(u32, f64, f64)>> {
     let none = links.is_empty();
@@ -775,15 +876,17 @@ pub fn expand(
             if e.buried[li] || none {
                 return out;
             }
-            let (x, n) = (e.centre[li], e.normal[li]);
             let root = e.root[li];
             let mut node = root;
             let mut parent = t.root_parent.get(root as usize).copied().unwrap_or(NONE);
             loop {
-                for k in links.into_node(node) {
-                    let f = k.factor(x, n);
-                    if f > 0.0 {
-                        out.push((k.src, f, f * k.v_se / k.v.max(1e-300)));
+                for (k, ps) in links.into_node(node).iter().zip(pieces.of(node)) {
+                    let rel = k.v_se / k.v.max(1e-300);
+                    for p in ps {
+                        let f = piece_factor(p, k.v, e, l);
+                        if f > 0.0 {
+                            out.push((p.0, f, f * rel));
+                        }
                     }
                 }
                 if parent == NONE {
@@ -795,4 +898,130 @@ pub fn expand(
             out
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::formfactor::exact::Piece as Shape2;
+
+    fn grid(n: usize) -> Elements {
+        // An n x n grid of unit squares in z = 0 facing +z, and the same tilted up by 90°
+        // along x = 0 facing +x: two groups of roots.
+        let mut e = Elements::default();
+        for i in 0..n {
+            for j in 0..n {
+                let (x, y) = (i as f64, j as f64);
+                e.add_root(
+                    Shape2::Quad([
+                        DVec3::new(x, y, 0.0),
+                        DVec3::new(x + 1.0, y, 0.0),
+                        DVec3::new(x + 1.0, y + 1.0, 0.0),
+                        DVec3::new(x, y + 1.0, 0.0),
+                    ]),
+                    DVec3::Z,
+                );
+                e.add_root(
+                    Shape2::Quad([
+                        DVec3::new(0.0, y, x),
+                        DVec3::new(0.0, y + 1.0, x),
+                        DVec3::new(0.0, y + 1.0, x + 1.0),
+                        DVec3::new(0.0, y, x + 1.0),
+                    ]),
+                    DVec3::X,
+                );
+            }
+        }
+        e
+    }
+
+    #[test]
+    fn tree_areas_sum_and_bounds_hold_their_roots() {
+        let e = grid(5);
+        let vis = e.visible_areas();
+        let t = Tree::build(&e, &vis, &vec![0.5; e.roots]);
+        assert_eq!(t.len(), e.roots - 1);
+        assert!((t.area[0] - 50.0).abs() < 1e-9, "{}", t.area[0]);
+        for c in 0..t.len() {
+            let kids: f64 = t.children[c]
+                .iter()
+                .map(|&k| {
+                    if is_cluster(k) {
+                        t.area[(k & !CLUSTER) as usize]
+                    } else {
+                        vis[k as usize]
+                    }
+                })
+                .sum();
+            assert!((kids - t.area[c]).abs() < 1e-9);
+            let (centre, r) = t.sphere[c];
+            for &m in t.roots_of(c as u32 | CLUSTER) {
+                for &p in e.corners(m) {
+                    assert!(p.distance(centre) <= r + 1e-12);
+                }
+                assert!(t.cone[c].1 <= e.normal[m as usize].dot(t.cone[c].0) + 1e-12);
+            }
+        }
+        // Every root is a leaf of the tree exactly once.
+        let mut seen = vec![0; e.roots];
+        for c in 0..t.len() {
+            for &k in &t.children[c] {
+                if !is_cluster(k) {
+                    seen[k as usize] += 1;
+                }
+            }
+        }
+        assert!(seen.iter().all(|&k| k == 1));
+    }
+
+    #[test]
+    fn solid_angle_of_a_rectangle_matches_its_closed_form() {
+        // An a x b rectangle seen from height h above its centre:
+        // Ω = 4 asin(ab / √((a² + 4h²)(b² + 4h²))).
+        let (a, b) = (2.0f64, 1.0f64);
+        let poly = [
+            DVec3::new(-1.0, -0.5, 0.0),
+            DVec3::new(1.0, -0.5, 0.0),
+            DVec3::new(1.0, 0.5, 0.0),
+            DVec3::new(-1.0, 0.5, 0.0),
+        ];
+        for h in [0.01f64, 0.3, 1.0, 10.0] {
+            let exact =
+                4.0 * (a * b / ((a * a + 4.0 * h * h) * (b * b + 4.0 * h * h)).sqrt()).asin();
+            let got = solid_angle(DVec3::new(0.0, 0.0, h), &poly, DVec3::Z);
+            assert!(
+                (got - exact).abs() < 1e-12 * exact.max(1.0),
+                "h {h}: {got} vs {exact}"
+            );
+            assert_eq!(solid_angle(DVec3::new(0.0, 0.0, -h), &poly, DVec3::Z), 0.0);
+        }
+    }
+
+    #[test]
+    fn cone_bound_is_a_bound() {
+        let mut rng = Pcg32::keyed(7, 1, 2, 3);
+        let unit = |rng: &mut Pcg32| {
+            let z: f64 = 2.0 * rng.next_f64() - 1.0;
+            let phi = std::f64::consts::TAU * rng.next_f64();
+            let s = (1.0 - z * z).sqrt();
+            DVec3::new(s * phi.cos(), s * phi.sin(), z)
+        };
+        for _ in 0..2000 {
+            let axis = unit(&mut rng);
+            let half: f64 = 1.2 * rng.next_f64();
+            let w = unit(&mut rng);
+            let alpha = 0.5 * rng.next_f64();
+            let bound = max_cos((axis, half.cos()), w, alpha);
+            // A normal in the cone and a direction within alpha of w.
+            let n = (axis + half * rng.next_f64() * unit(&mut rng)).normalize();
+            if n.dot(axis) < half.cos() {
+                continue;
+            }
+            let u = (w + alpha * rng.next_f64() * unit(&mut rng)).normalize();
+            if u.dot(w) < alpha.cos() {
+                continue;
+            }
+            assert!(n.dot(u).max(0.0) <= bound + 1e-12);
+        }
+    }
 }

@@ -57,7 +57,7 @@ use solve::{Gather, Materials, SolveStats, State};
 pub const HIDE: f64 = 0.1;
 
 /// Default [`Settings::clusters`].
-pub const CLUSTERS: bool = true;
+pub const CLUSTERS: bool = false;
 
 /// Settings of a hierarchical solution.
 #[derive(Clone, Debug, PartialEq)]
@@ -314,9 +314,18 @@ pub fn run(
     let specs: Vec<(u32, u32)> = match tree {
         Some(t) => {
             let f = refiner(
-                t, &e, &visible, &rho_max, vis, &state, b_ref, s.error * b_ref, s,
+                t,
+                &e,
+                &visible,
+                &rho_max,
+                vis,
+                &state,
+                b_ref,
+                s.error * b_ref,
+                s,
             );
-            let made = clusters::refine(&f, vec![(clusters::top(t), clusters::top(t))], &mut clinks);
+            let made =
+                clusters::refine(&f, vec![(clusters::top(t), clusters::top(t))], &mut clinks);
             report.rays += made.rays;
             report.cluster_pairs += made.pairs;
             report.clusters = t.len();
@@ -363,19 +372,19 @@ pub fn run(
         }
         let refined = regrouped
             + refine_links(
-            &mut e,
-            &mut links,
-            &mut state,
-            patches,
-            vis,
-            &blockers,
-            s,
-            eps,
-            min_area,
-            tol,
-            &normals,
-            &mut report,
-        );
+                &mut e,
+                &mut links,
+                &mut state,
+                patches,
+                vis,
+                &blockers,
+                s,
+                eps,
+                min_area,
+                tol,
+                &normals,
+                &mut report,
+            );
         let refine_seconds = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
         let (rho, emit) = materials(&e, &material);
@@ -389,10 +398,7 @@ pub fn run(
         let stats = if last {
             let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
             let leaves: Vec<u32> = e.leaves().collect();
-            let extra = match tree {
-                Some(t) => clusters::expand(t, &e, &clinks, &leaves),
-                None => Vec::new(),
-            };
+            let extra = cluster_entries(tree, &e, &clinks, &leaves, vis, &state, eps, s);
             let (gather, cost) = gather_lists(
                 &ctx, &links, &extra, &rho, &state, eps, s.accuracy, s.descend,
             );
@@ -421,10 +427,7 @@ pub fn run(
             )
         } else {
             let roots: Vec<u32> = (0..e.roots as u32).collect();
-            let extra = match tree {
-                Some(t) => clusters::expand(t, &e, &clinks, &roots),
-                None => Vec::new(),
-            };
+            let extra = cluster_entries(tree, &e, &clinks, &roots, vis, &state, eps, s);
             solve::solve_push(
                 &e,
                 tree,
@@ -488,6 +491,29 @@ pub fn run(
         state,
         report,
     })
+}
+
+/// The cluster links' gather entries of `targets` ([`clusters::expand`]), their sources
+/// cut into pieces where their radiosity varies; none without clusters.
+#[allow(clippy::too_many_arguments)]
+fn cluster_entries(
+    tree: Option<&Tree>,
+    e: &Elements,
+    clinks: &Links,
+    targets: &[u32],
+    vis: &Visibility,
+    state: &State,
+    eps: f64,
+    s: &Settings,
+) -> Vec<Vec<(u32, f64, f64)>> {
+    let Some(t) = tree else {
+        return Vec::new();
+    };
+    let visible = e.visible_areas();
+    let rho_max = vec![0.0; e.roots];
+    let f = refiner(t, e, &visible, &rho_max, vis, state, 0.0, eps, s);
+    let pieces = f.all_pieces(clinks, s.descend);
+    clusters::expand(t, e, clinks, &pieces, targets)
 }
 
 /// The cluster refinement's view of the current solution.
