@@ -295,6 +295,10 @@ struct HierarchyArgs {
     /// of faces far enough apart) instead of a link between every pair of them.
     #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::CLUSTERS { Switch::On } else { Switch::Off })]
     clusters: Switch,
+    /// Hierarchical with clusters: largest relative error bound of a cluster link (inf:
+    /// the link tolerance alone decides; 1 to 3: fewer savings, closer to unclustered).
+    #[arg(long, default_value_t = f64::INFINITY)]
+    cluster_accuracy: f64,
     /// Hierarchical: cap on refine-and-solve passes.
     #[arg(long, default_value_t = 8)]
     max_passes: usize,
@@ -738,6 +742,7 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
                 accuracy: args.hier.link_accuracy,
                 seed: args.est.seed,
                 clusters: args.hier.clusters == Switch::On,
+                cluster_accuracy: args.hier.cluster_accuracy,
                 ..Default::default()
             };
             h.validate()?;

@@ -271,6 +271,27 @@ fn clustered_and_unclustered_bakes_agree() {
     let res = Resolution::DiagonalFraction(0.25);
     let (p, a) = solve("room-spheres-2", res, &on);
     let (_, b) = solve("room-spheres-2", res, &off);
+    // With cluster links held to a relative bound of 3: closer, fewer savings.
+    let tight = Settings {
+        cluster_accuracy: 3.0,
+        ..on.clone()
+    };
+    let (_, c) = solve("room-spheres-2", res, &tight);
+    let (_, oc) = averages(&p, &c);
+    let worst_tight = oc
+        .iter()
+        .zip(&averages(&p, &b).1)
+        .map(|(x, y)| (x / y - 1.0).abs())
+        .fold(0.0, f64::max);
+    eprintln!(
+        "accuracy 3: objects worst {worst_tight:.4}, initial links {}",
+        c.report.initial_links
+    );
+    assert!(
+        worst_tight < 0.002,
+        "objects differ by {worst_tight} at accuracy 3"
+    );
+    assert!(c.report.initial_links * 3 < b.report.initial_links);
     let (ra, oa) = averages(&p, &a);
     let (rb, ob) = averages(&p, &b);
     let worst_obj = oa

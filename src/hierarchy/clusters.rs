@@ -40,7 +40,9 @@
 //! asin(s/d)` the change of each cosine (1-Lipschitz in the direction), and `δ_v` the
 //! visibility term: the binomial standard error of an all-free sample, or 1 when the rays
 //! disagree (a shadow boundary crosses the pair, as for a partly visible element link).
-//! A pair is accepted when `ε ≤ eps`; pairs of two roots become element links
+//! A pair is accepted when `ε ≤ eps` and its relative bound `4ds/(d - s)² + 2α + δ_v` is
+//! at most [`super::Settings::cluster_accuracy`] (by default any: the transfer bound
+//! alone decides, as in Smits et al.'s BF refinement); pairs of two roots become element links
 //! ([`super::link::evaluate`]); otherwise the node with the larger sphere is split (the
 //! other one when the larger is a root). A link whose rays were all blocked is dropped
 //! when `3/n` of `F_up` is within the share `hide` of the tolerance, else refined.
@@ -427,6 +429,9 @@ pub struct Refiner<'a> {
     pub rays: usize,
     /// Seed of the random streams.
     pub seed: u64,
+    /// Largest relative error bound `4ds/(d - s)² + 2α + δ_v` of an accepted link
+    /// ([`super::Settings::cluster_accuracy`]).
+    pub accuracy: f64,
 }
 
 /// What a pair of nodes becomes.
@@ -558,7 +563,7 @@ impl Refiner<'_> {
         } else {
             fraction_se(1.0, n)
         };
-        if err(geo + dv) > self.eps {
+        if err(geo + dv) > self.eps || geo + dv > self.accuracy {
             return (Outcome::Split(self.split(r, s, &rs, &ss)), seen.rays);
         }
         let p = self.projected(s, w);
