@@ -268,6 +268,15 @@ enum MethodArg {
     Hierarchical,
 }
 
+/// On or off.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum Switch {
+    /// On.
+    On,
+    /// Off.
+    Off,
+}
+
 #[derive(Args, Debug)]
 struct HierarchyArgs {
     /// Radiosity method.
@@ -282,6 +291,14 @@ struct HierarchyArgs {
     /// Hierarchical: visibility strata per side of each link (rays² rays).
     #[arg(long, default_value_t = 4)]
     link_rays: usize,
+    /// Hierarchical: start from a cluster tree over the input faces (links between groups
+    /// of faces far enough apart) instead of a link between every pair of them.
+    #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::CLUSTERS { Switch::On } else { Switch::Off })]
+    clusters: Switch,
+    /// Hierarchical with clusters: largest relative error bound of a cluster link (inf:
+    /// the link tolerance alone decides; 1 to 3: fewer savings, closer to unclustered).
+    #[arg(long, default_value_t = f64::INFINITY)]
+    cluster_accuracy: f64,
     /// Hierarchical: cap on refine-and-solve passes.
     #[arg(long, default_value_t = 8)]
     max_passes: usize,
@@ -724,6 +741,8 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
                 quadrature: args.hier.link_quadrature,
                 accuracy: args.hier.link_accuracy,
                 seed: args.est.seed,
+                clusters: args.hier.clusters == Switch::On,
+                cluster_accuracy: args.hier.cluster_accuracy,
                 ..Default::default()
             };
             h.validate()?;
@@ -1155,11 +1174,26 @@ fn dispatch(cli: &Cli, matches: &clap::ArgMatches, cluster: &dyn Cluster) -> Res
         }
         Command::Suite(cmd) => suite(cmd),
         Command::Scenes => {
-            let width = builtin::NAMES.iter().map(|n| n.len()).max().unwrap_or(0);
+            use radiosity::scene::generated;
+            let width = builtin::NAMES
+                .iter()
+                .chain(generated::LISTED)
+                .map(|n| n.len())
+                .max()
+                .unwrap_or(0);
             for name in builtin::NAMES {
                 let what = builtin::describe(name).unwrap_or_default();
                 println!("{name:width$}  {what}");
             }
+            for name in generated::LISTED {
+                let what = generated::describe(name).unwrap_or_default();
+                println!("{name:width$}  {what}");
+            }
+            println!(
+                "(generated: room-spheres-N for any N in 1..={}, {} triangles per sphere)",
+                generated::MAX_SPHERES,
+                generated::SPHERE_TRIANGLES
+            );
             Ok(())
         }
     }

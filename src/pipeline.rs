@@ -1182,9 +1182,16 @@ fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
     );
     let _ = writeln!(
         o,
-        "  links: {} ({} partly visible; {} between roots at the start), leaf gather entries {}, {} rays, {} point-factor evaluations, Embree {}",
+        "  links: {} ({} partly visible; {} at the start), leaf gather entries {}, {} rays, {} point-factor evaluations, Embree {}",
         h.links, h.partial_links, h.initial_links, h.gather, h.rays, h.evals, s.embree
     );
+    if h.clusters > 0 {
+        let _ = writeln!(
+            o,
+            "  clusters: {} over the roots, {} cluster links at the end, {} node pairs examined",
+            h.clusters, h.cluster_links, h.cluster_pairs
+        );
+    }
     for (k, p) in h.passes.iter().enumerate() {
         let _ = writeln!(
             o,

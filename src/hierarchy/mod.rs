@@ -31,6 +31,7 @@
 //! hierarchy and the same bits on any number of threads.
 
 pub mod blockers;
+pub mod clusters;
 pub mod element;
 pub mod leaves;
 pub mod link;
@@ -46,6 +47,7 @@ use crate::sampling::fraction_se;
 use crate::scene::luminance;
 use crate::visibility::Visibility;
 use blockers::Blockers;
+use clusters::{Links, Refiner, Tree};
 use element::Elements;
 use link::{Context, Cost, Link, Tolerance};
 use refine::{Decision, Oracle};
@@ -53,6 +55,9 @@ use solve::{Gather, Materials, SolveStats, State};
 
 /// Default [`Settings::hide`].
 pub const HIDE: f64 = 0.1;
+
+/// Default [`Settings::clusters`].
+pub const CLUSTERS: bool = false;
 
 /// Settings of a hierarchical solution.
 #[derive(Clone, Debug, PartialEq)]
@@ -86,6 +91,14 @@ pub struct Settings {
     pub max_links: usize,
     /// Seed of the random streams.
     pub seed: u64,
+    /// Start from the self-link of a cluster tree over the roots ([`clusters`]) instead of
+    /// a link between every pair of roots.
+    pub clusters: bool,
+    /// Largest relative error bound of a cluster link (the geometric and visibility terms
+    /// of [`clusters`], before the transfer they scale): infinite to let the link
+    /// tolerance alone decide; 1 to 3 trade links for agreement with unclustered bakes
+    /// (docs/HIERARCHY.md, Clustering).
+    pub cluster_accuracy: f64,
 }
 
 impl Default for Settings {
@@ -103,6 +116,8 @@ impl Default for Settings {
             max_passes: 8,
             max_links: 40_000_000,
             seed: 1,
+            clusters: CLUSTERS,
+            cluster_accuracy: f64::INFINITY,
         }
     }
 }
@@ -133,6 +148,12 @@ impl Settings {
         }
         if !(self.descend > 0.0 && self.descend.is_finite()) {
             return bad(format!("descend share must be > 0, got {}", self.descend));
+        }
+        if self.cluster_accuracy.is_nan() || self.cluster_accuracy <= 0.0 {
+            return bad(format!(
+                "--cluster-accuracy must be a positive number (or inf), got {}",
+                self.cluster_accuracy
+            ));
         }
         if !(self.quadrature > 0.0 && self.quadrature < 1.0) {
             return bad(format!(
@@ -186,8 +207,14 @@ pub struct Report {
     pub links: usize,
     /// Of which partly visible.
     pub partial_links: usize,
-    /// Initial links between roots.
+    /// Initial links: between roots, plus cluster links when clustering.
     pub initial_links: usize,
+    /// Clusters in the tree over the roots (0 without clustering).
+    pub clusters: usize,
+    /// Cluster links at the end.
+    pub cluster_links: usize,
+    /// Node pairs the cluster refinement examined.
+    pub cluster_pairs: usize,
     /// Entries of the leaves' gather lists (their ancestor chains' links).
     pub gather: usize,
     /// Largest factor sum of a visible leaf (its gather list), and that sum's error bar.
@@ -286,11 +313,41 @@ pub fn run(
     }
     let mut b_ref = sum_ea / sum_a / (1.0 - sum_rho / sum_a).max(1e-3);
 
-    // Initial links between every pair of roots.
+    // Initial links: from the top cluster's self-link, or between every pair of roots.
     let n = e.roots as u32;
-    let specs: Vec<(u32, u32)> = (0..n)
-        .flat_map(|r| (0..n).filter(move |&t| t != r).map(move |t| (r, t)))
+    let visible = e.visible_areas();
+    let rho_max: Vec<f64> = rho[..e.roots]
+        .iter()
+        .map(|r| r.iter().copied().fold(0.0, f64::max))
         .collect();
+    let tree = (s.clusters && e.roots >= 2).then(|| Tree::build(&e, &visible, &rho_max));
+    let tree = tree.as_ref();
+    let mut clinks = tree.map_or_else(Links::default, |t| Links::new(t, e.roots));
+    state.pull_clusters(tree, &visible);
+    let specs: Vec<(u32, u32)> = match tree {
+        Some(t) => {
+            let f = refiner(
+                t,
+                &e,
+                &visible,
+                &rho_max,
+                vis,
+                &state,
+                b_ref,
+                s.error * b_ref,
+                s,
+            );
+            let made =
+                clusters::refine(&f, vec![(clusters::top(t), clusters::top(t))], &mut clinks);
+            report.rays += made.rays;
+            report.cluster_pairs += made.pairs;
+            report.clusters = t.len();
+            made.specs
+        }
+        None => (0..n)
+            .flat_map(|r| (0..n).filter(move |&t| t != r).map(move |t| (r, t)))
+            .collect(),
+    };
     let mut links: Vec<Vec<Link>> = vec![Vec::new(); e.len()];
     {
         let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
@@ -299,27 +356,48 @@ pub fn run(
         report.rays += cost.rays;
         report.evals += cost.evals;
     }
-    report.initial_links = links.iter().map(Vec::len).sum();
+    report.initial_links = links.iter().map(Vec::len).sum::<usize>() + clinks.len();
 
     for pass_no in 0..s.max_passes.max(1) {
         let t0 = Instant::now();
         let eps = s.error * b_ref;
         report.eps = eps;
         let rays_before = report.rays;
-        let refined = refine_links(
-            &mut e,
-            &mut links,
-            &mut state,
-            patches,
-            vis,
-            &blockers,
-            s,
-            eps,
-            min_area,
-            tol,
-            &normals,
-            &mut report,
-        );
+        // Cluster links that today's radiosity puts over the tolerance go down a level.
+        let mut regrouped = 0;
+        if let (Some(t), true) = (tree, pass_no > 0) {
+            let visible = e.visible_areas();
+            let (rho, _) = materials(&e, &material);
+            let rho_max: Vec<f64> = rho[..e.roots]
+                .iter()
+                .map(|r| r.iter().copied().fold(0.0, f64::max))
+                .collect();
+            let f = refiner(t, &e, &visible, &rho_max, vis, &state, 0.0, eps, s);
+            let (made, replaced) = clusters::recheck(&f, &mut clinks);
+            regrouped = replaced;
+            report.rays += made.rays;
+            report.cluster_pairs += made.pairs;
+            let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
+            let tols = tolerances(&made.specs, &rho, &state.b, eps, s, b_ref);
+            let cost = evaluate_into(&ctx, &made.specs, &tols, &mut links);
+            report.rays += cost.rays;
+            report.evals += cost.evals;
+        }
+        let refined = regrouped
+            + refine_links(
+                &mut e,
+                &mut links,
+                &mut state,
+                patches,
+                vis,
+                &blockers,
+                s,
+                eps,
+                min_area,
+                tol,
+                &normals,
+                &mut report,
+            );
         let refine_seconds = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
         let (rho, emit) = materials(&e, &material);
@@ -332,8 +410,11 @@ pub fn run(
         let last = (refined == 0 && pass_no > 0) || pass_no + 1 == s.max_passes.max(1);
         let stats = if last {
             let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
-            let (gather, cost) =
-                gather_lists(&ctx, &links, &rho, &state, eps, s.accuracy, s.descend);
+            let leaves: Vec<u32> = e.leaves().collect();
+            let extra = cluster_entries(tree, &e, &clinks, &leaves, vis, &state, eps, s);
+            let (gather, cost) = gather_lists(
+                &ctx, &links, &extra, &rho, &state, eps, s.accuracy, s.descend,
+            );
             report.evals += cost.evals;
             report.rays += cost.rays;
             report.gather = gather.len();
@@ -349,6 +430,7 @@ pub fn run(
             }
             solve::solve(
                 &e,
+                tree,
                 &gather,
                 &m,
                 &mut state,
@@ -357,8 +439,12 @@ pub fn run(
                 s.max_iterations,
             )
         } else {
+            let roots: Vec<u32> = (0..e.roots as u32).collect();
+            let extra = cluster_entries(tree, &e, &clinks, &roots, vis, &state, eps, s);
             solve::solve_push(
                 &e,
+                tree,
+                &extra,
                 &links,
                 &m,
                 &mut state,
@@ -368,6 +454,7 @@ pub fn run(
             )
         };
         solve::estimate_spread(&e, &links, &rho, &mut state);
+        state.pull_clusters(tree, &e.visible_areas());
         b_ref = mean_radiosity(&e, &state).max(f64::MIN_POSITIVE);
         let pass = Pass {
             refined,
@@ -400,6 +487,7 @@ pub fn run(
             ));
         }
     }
+    report.cluster_links = clinks.len();
     finish_report(
         &e,
         &links,
@@ -416,6 +504,60 @@ pub fn run(
         state,
         report,
     })
+}
+
+/// The cluster links' gather entries of `targets` ([`clusters::expand`]), their sources
+/// cut into pieces where their radiosity varies; none without clusters.
+#[allow(clippy::too_many_arguments)]
+fn cluster_entries(
+    tree: Option<&Tree>,
+    e: &Elements,
+    clinks: &Links,
+    targets: &[u32],
+    vis: &Visibility,
+    state: &State,
+    eps: f64,
+    s: &Settings,
+) -> Vec<Vec<(u32, f64, f64)>> {
+    let Some(t) = tree else {
+        return Vec::new();
+    };
+    let visible = e.visible_areas();
+    let rho_max = vec![0.0; e.roots];
+    let f = refiner(t, e, &visible, &rho_max, vis, state, 0.0, eps, s);
+    let pieces = f.all_pieces(clinks, s.descend);
+    clusters::expand(t, e, clinks, &pieces, targets)
+}
+
+/// The cluster refinement's view of the current solution.
+#[allow(clippy::too_many_arguments)]
+fn refiner<'a>(
+    tree: &'a Tree,
+    e: &'a Elements,
+    visible: &'a [f64],
+    rho_max: &'a [f64],
+    vis: &'a Visibility,
+    state: &'a State,
+    floor: f64,
+    eps: f64,
+    s: &Settings,
+) -> Refiner<'a> {
+    Refiner {
+        tree,
+        elements: e,
+        visible,
+        rho_max,
+        vis,
+        b: &state.b,
+        spread: &state.spread,
+        clusters: &state.clusters,
+        floor,
+        eps,
+        hide: s.hide,
+        rays: s.rays,
+        seed: s.seed,
+        accuracy: s.cluster_accuracy,
+    }
 }
 
 /// Reflectance and emission per element, from its root's material.
@@ -562,9 +704,11 @@ struct Entry {
 ///
 /// Factors are integrated to `accuracy × eps / (ρ_l B_s)` (as in `tolerances`). Returns
 /// the lists and the work spent.
+#[allow(clippy::too_many_arguments)]
 pub fn gather_lists(
     ctx: &Context,
     links: &[Vec<Link>],
+    extra: &[Vec<(u32, f64, f64)>],
     rho: &[[f64; 3]],
     state: &State,
     eps: f64,
@@ -722,7 +866,7 @@ pub fn gather_lists(
     };
     let mut cost = Cost::default();
     g.start.push(0);
-    for (list, c) in per_leaf {
+    for (k, (list, c)) in per_leaf.into_iter().enumerate() {
         cost += c;
         let (mut sum, mut bound, mut var) = (0.0, 0.0, 0.0);
         for (s, f, q, se) in list {
@@ -730,6 +874,12 @@ pub fn gather_lists(
             g.f.push(f);
             sum += f;
             bound += q;
+            var += se * se;
+        }
+        for &(s, f, se) in extra.get(k).map_or(&[][..], Vec::as_slice) {
+            g.src.push(s);
+            g.f.push(f);
+            sum += f;
             var += se * se;
         }
         g.start.push(g.src.len());

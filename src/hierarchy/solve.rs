@@ -32,6 +32,7 @@
 
 use rayon::prelude::*;
 
+use super::clusters::{self, Radiosity, Tree};
 use super::element::{Elements, NONE};
 
 /// Radiosity per element and what the refinement oracle reads from it.
@@ -44,6 +45,8 @@ pub struct State {
     pub spread: Vec<[f64; 3]>,
     /// Irradiance each leaf received in the last iteration (0 for parents).
     pub h: Vec<[f64; 3]>,
+    /// Radiosity of the clusters ([`super::clusters`]), when there are any.
+    pub clusters: Radiosity,
 }
 
 impl State {
@@ -52,6 +55,22 @@ impl State {
         self.b.resize(n, [0.0; 3]);
         self.spread.resize(n, [0.0; 3]);
         self.h.resize(n, [0.0; 3]);
+    }
+
+    /// Radiosity of node `n`: an element, or a cluster when [`clusters::CLUSTER`] is set.
+    pub fn source(&self, n: u32) -> [f64; 3] {
+        if clusters::is_cluster(n) {
+            self.clusters.b[(n & !clusters::CLUSTER) as usize]
+        } else {
+            self.b[n as usize]
+        }
+    }
+
+    /// Pulls the clusters of `tree` (if any) from the roots.
+    pub fn pull_clusters(&mut self, tree: Option<&Tree>, vis: &[f64]) {
+        if let Some(t) = tree {
+            self.clusters.pull(t, vis, &self.b, &self.spread);
+        }
     }
 }
 
@@ -106,8 +125,10 @@ impl Gather {
 
 /// Iterates gather and pull from `state` until the relative change is at most `tol`
 /// (or `max_iterations`); `b_ref` is the scene's mean radiosity (for the floor).
+#[allow(clippy::too_many_arguments)]
 pub fn solve(
     e: &Elements,
+    tree: Option<&Tree>,
     g: &Gather,
     m: &Materials,
     state: &mut State,
@@ -130,7 +151,7 @@ pub fn solve(
             }
             let mut h = [0.0; 3];
             for j in g.start[k]..g.start[k + 1] {
-                let bs = state.b[g.src[j] as usize];
+                let bs = state.source(g.src[j]);
                 for c in 0..3 {
                     h[c] += g.f[j] * bs[c];
                 }
@@ -150,6 +171,7 @@ pub fn solve(
             state.h[l] = h;
         }
         pull(e, &vis, state);
+        state.pull_clusters(tree, &vis);
         stats = iteration_stats(it, change, tol);
         if stats.converged {
             break;
@@ -162,8 +184,14 @@ pub fn solve(
 /// element gathers over its own links (whose factors are per visible area, so the
 /// irradiance is that of the element's unburied part), irradiance is pushed down
 /// unchanged, leaves get `B = E + ρ H`, then pull. Same stopping rule as [`solve`].
+///
+/// With clusters, `extra[k]` lists root `k`'s cluster links as `(source node, factor, _)`
+/// entries ([`clusters::expand`] at the root's centre), gathered with its own links.
+#[allow(clippy::too_many_arguments)]
 pub fn solve_push(
     e: &Elements,
+    tree: Option<&Tree>,
+    extra: &[Vec<(u32, f64, f64)>],
     links: &[Vec<super::link::Link>],
     m: &Materials,
     state: &mut State,
@@ -186,6 +214,12 @@ pub fn solve_push(
                 let bs = state.b[l.src as usize];
                 for c in 0..3 {
                     s[c] += l.f * bs[c];
+                }
+            }
+            for &(src, f, _) in extra.get(p).map_or(&[][..], Vec::as_slice) {
+                let bs = state.source(src);
+                for c in 0..3 {
+                    s[c] += f * bs[c];
                 }
             }
             *g = s;
@@ -216,6 +250,7 @@ pub fn solve_push(
         }
         // 3. Pull (children first).
         pull(e, &vis, state);
+        state.pull_clusters(tree, &vis);
         stats = iteration_stats(it, change, tol);
         if stats.converged {
             break;

@@ -10,6 +10,7 @@
 //! patches or rays: the `mesh` module turns a scene into patches.
 
 pub mod builtin;
+pub mod generated;
 pub mod obj;
 pub mod polygon;
 
@@ -575,13 +576,16 @@ impl Scene {
         if let Some(scene) = builtin::load(name_or_path)? {
             return Ok(scene);
         }
+        if let Some(scene) = generated::load(name_or_path)? {
+            return Ok(scene);
+        }
         let path = std::path::Path::new(name_or_path);
         if path.exists() || name_or_path.contains('/') || name_or_path.ends_with(".obj") {
             return obj::load_file(path);
         }
         Err(Error::UnknownScene {
             name: name_or_path.to_string(),
-            known: builtin::NAMES.join(", "),
+            known: format!("{}, room-spheres-N", builtin::NAMES.join(", ")),
         })
     }
 }

@@ -1,0 +1,1032 @@
+//! Clusters: a tree of groups of root patches above the element trees, and links between
+//! groups, so that a scene of many small faces does not start with a link between every
+//! pair of them (Smits, Arvo and Greenberg, "A clustering algorithm for radiosity in
+//! complex environments", SIGGRAPH 1994; Sillion, "A unified hierarchical algorithm for
+//! global illumination with scattering volumes and object clusters", IEEE TVCG 1995).
+//!
+//! **The tree.** A binary tree built top-down over the roots: each cluster's roots are cut
+//! in two at the median of their centroids along the longest axis of the centroids' box
+//! (a spatial median split), down to single roots, which are the tree's leaves. A
+//! cluster keeps its bounding box and sphere, its visible area, the largest reflectance
+//! of its roots, and a cone holding its normals (axis and half-angle, Sillion's oriented
+//! clusters; a full cone when the normals spread over more than a hemisphere). A *node* is
+//! a cluster (handle with [`CLUSTER`] set) or a root element.
+//!
+//! **Links.** Refinement starts from the self-link of the top cluster. A pair of nodes
+//! `R ← S`, one of them a cluster, whose bounding spheres (centres `d` apart, radii
+//! summing to `s`) do not overlap carries at most
+//!
+//! `F_up = A_S c_S c_R / (π (d - s)²)`
+//!
+//! (every point kernel `cos θ_x cos θ_y / (π r²)` over `S` with `r ≥ d - s`; `c_S`, `c_R`
+//! the cone bounds of the cosines, [`Tree::max_cos`]). The link is one point-to-cluster
+//! transfer: a receiving leaf `l` at `x_l` with normal `n_l` gathers
+//!
+//! `f_lS = P_S(w) max(0, n_l·ŵ_l) v / (π |c_S - x_l|²)`,
+//!
+//! with `P_S(w) = Σ_j A_j max(0, n_j·w)` the projected area of the source's faces toward
+//! the receiver (`w` from the source's centre to the receiver's; Sillion's oriented
+//! emission), `ŵ_l` the direction from the leaf to the source's centre, and `v` the
+//! visible fraction from `n²` rays between area-sampled points of the two nodes, weighted
+//! by the kernel (a transmittance estimate). The source radiosity is the visible-area mean
+//! over its roots (Smits et al.'s cluster radiosity; each receiving leaf uses its own
+//! orientation, so irradiance is pushed down by orientation, not isotropically: a
+//! cluster's faces that turn away from the source receive nothing). Error bound, as the
+//! elements' brightness-weighted error ([`super::refine`]):
+//!
+//! `ε = ρ_R (B_S ΔF + ΔB_S F_up)`, `ΔF = F_up min(1, 4ds/(d - s)² + 2α + δ_v)`,
+//!
+//! where `4ds/(d - s)²` bounds the relative change of `1/r²` over the spheres, `α =
+//! asin(s/d)` the change of each cosine (1-Lipschitz in the direction), and `δ_v` the
+//! visibility term: the binomial standard error of an all-free sample, or 1 when the rays
+//! disagree (a shadow boundary crosses the pair, as for a partly visible element link).
+//! A pair is accepted when `ε ≤ eps` and its relative bound `4ds/(d - s)² + 2α + δ_v` is
+//! at most [`super::Settings::cluster_accuracy`] (by default any: the transfer bound
+//! alone decides, as in Smits et al.'s BF refinement); pairs of two roots become element links
+//! ([`super::link::evaluate`]); otherwise the node with the larger sphere is split (the
+//! other one when the larger is a root). A link whose rays were all blocked is dropped
+//! when `3/n` of `F_up` is within the share `hide` of the tolerance, else refined.
+//!
+//! Links are re-examined each pass with the new radiosities (multigridding), and a link
+//! whose error grew past the tolerance is replaced by its children's pairs.
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use super::element::{Elements, NONE};
+use crate::sampling::{fraction_se, Pcg32};
+use crate::visibility::{SegmentRay, Visibility};
+
+/// Set in a node handle that names a cluster (its index in the low bits); clear for a root
+/// element.
+pub const CLUSTER: u32 = 1 << 31;
+
+/// True when node `n` is a cluster.
+pub fn is_cluster(n: u32) -> bool {
+    n & CLUSTER != 0
+}
+
+/// The cluster tree over the roots, in flat arrays indexed by cluster; children come after
+/// their parents.
+#[derive(Clone, Debug, Default)]
+pub struct Tree {
+    /// The two children of each cluster (node handles).
+    pub children: Vec<[u32; 2]>,
+    /// Parent cluster of each cluster ([`NONE`] for the top).
+    pub parent: Vec<u32>,
+    /// Parent cluster of each root ([`NONE`] when there is only one root).
+    pub root_parent: Vec<u32>,
+    /// Position of each root in [`Tree::members`].
+    pub slot: Vec<u32>,
+    /// Members of each cluster: a range of [`Tree::members`].
+    pub range: Vec<(u32, u32)>,
+    /// The roots in tree order.
+    pub members: Vec<u32>,
+    /// Running sum of the members' visible areas (one more entry than members).
+    pub cum: Vec<f64>,
+    /// Bounding box of each cluster.
+    pub bounds: Vec<(DVec3, DVec3)>,
+    /// Centre of the bounding sphere (the box's centre) and its radius.
+    pub sphere: Vec<(DVec3, f64)>,
+    /// Visible area of each cluster.
+    pub area: Vec<f64>,
+    /// Largest reflectance (over channels and roots) of each cluster.
+    pub rho: Vec<f64>,
+    /// Normal cone of each cluster: axis and cosine of the half-angle (`-1` for a full
+    /// cone).
+    pub cone: Vec<(DVec3, f64)>,
+}
+
+/// The node at the top of the tree: the top cluster, or root 0 when there is one root.
+pub fn top(t: &Tree) -> u32 {
+    if t.children.is_empty() {
+        0
+    } else {
+        CLUSTER
+    }
+}
+
+impl Tree {
+    /// Builds the tree over the roots of `e`, with `rho_max[k]` the largest reflectance of
+    /// root `k`; `visible` are the elements' visible areas.
+    pub fn build(e: &Elements, visible: &[f64], rho_max: &[f64]) -> Tree {
+        let n = e.roots;
+        let mut t = Tree {
+            root_parent: vec![NONE; n],
+            members: (0..n as u32).collect(),
+            ..Default::default()
+        };
+        if n < 2 {
+            t.slot = vec![0; n];
+            t.cum = vec![0.0, visible.first().copied().unwrap_or(0.0)];
+            return t;
+        }
+        // Top-down, a stack of (cluster, lo, hi) to cut.
+        t.push_cluster(NONE, 0, n as u32);
+        let mut stack = vec![0u32];
+        while let Some(c) = stack.pop() {
+            let (lo, hi) = t.range[c as usize];
+            let slice = &mut t.members[lo as usize..hi as usize];
+            let (mut a, mut b) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+            for &m in slice.iter() {
+                a = a.min(e.centre[m as usize]);
+                b = b.max(e.centre[m as usize]);
+            }
+            let ext = b - a;
+            let axis = if ext.x >= ext.y && ext.x >= ext.z {
+                0
+            } else if ext.y >= ext.z {
+                1
+            } else {
+                2
+            };
+            let mid = slice.len() / 2;
+            slice.select_nth_unstable_by(mid, |&p, &q| {
+                let (x, y) = (e.centre[p as usize][axis], e.centre[q as usize][axis]);
+                x.total_cmp(&y).then(p.cmp(&q))
+            });
+            let halves = [(lo, lo + mid as u32), (lo + mid as u32, hi)];
+            let mut kids = [0u32; 2];
+            for (k, &(l, h)) in halves.iter().enumerate() {
+                if h - l == 1 {
+                    let r = t.members[l as usize];
+                    t.root_parent[r as usize] = c;
+                    kids[k] = r;
+                } else {
+                    let id = t.push_cluster(c, l, h);
+                    kids[k] = CLUSTER | id;
+                    stack.push(id);
+                }
+            }
+            t.children[c as usize] = kids;
+        }
+        t.slot = vec![0; n];
+        for (k, &m) in t.members.iter().enumerate() {
+            t.slot[m as usize] = k as u32;
+        }
+        // Sums, bounds and cones, children first.
+        t.cum = Vec::with_capacity(n + 1);
+        t.cum.push(0.0);
+        for &m in &t.members {
+            let last = *t.cum.last().unwrap_or(&0.0);
+            t.cum.push(last + visible[m as usize]);
+        }
+        for c in (0..t.children.len()).rev() {
+            let (lo, hi) = t.range[c];
+            let (mut a, mut b) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+            let (mut rho, mut axis) = (0.0f64, DVec3::ZERO);
+            for &m in &t.members[lo as usize..hi as usize] {
+                for &p in e.corners(m) {
+                    a = a.min(p);
+                    b = b.max(p);
+                }
+                rho = rho.max(rho_max[m as usize]);
+                axis += visible[m as usize].max(1e-300) * e.normal[m as usize];
+            }
+            let centre = 0.5 * (a + b);
+            let mut radius = 0.0f64;
+            for &m in &t.members[lo as usize..hi as usize] {
+                for &p in e.corners(m) {
+                    radius = radius.max(p.distance(centre));
+                }
+            }
+            let len = axis.length();
+            let cone = if len > 0.0 {
+                let axis = axis / len;
+                let cos = t.members[lo as usize..hi as usize]
+                    .iter()
+                    .map(|&m| axis.dot(e.normal[m as usize]))
+                    .fold(1.0f64, f64::min);
+                (axis, if cos > 0.0 { cos } else { -1.0 })
+            } else {
+                (DVec3::Z, -1.0)
+            };
+            t.bounds[c] = (a, b);
+            t.sphere[c] = (centre, radius);
+            t.area[c] = t.cum[hi as usize] - t.cum[lo as usize];
+            t.rho[c] = rho;
+            t.cone[c] = cone;
+        }
+        t
+    }
+
+    fn push_cluster(&mut self, parent: u32, lo: u32, hi: u32) -> u32 {
+        let id = self.children.len() as u32;
+        self.children.push([NONE; 2]);
+        self.parent.push(parent);
+        self.range.push((lo, hi));
+        self.bounds.push((DVec3::ZERO, DVec3::ZERO));
+        self.sphere.push((DVec3::ZERO, 0.0));
+        self.area.push(0.0);
+        self.rho.push(0.0);
+        self.cone.push((DVec3::Z, -1.0));
+        id
+    }
+
+    /// Number of clusters.
+    pub fn len(&self) -> usize {
+        self.children.len()
+    }
+
+    /// True when there are none (one root or none).
+    pub fn is_empty(&self) -> bool {
+        self.children.is_empty()
+    }
+
+    /// The roots under node `n`.
+    pub fn roots_of(&self, n: u32) -> &[u32] {
+        let (lo, hi) = if is_cluster(n) {
+            self.range[(n & !CLUSTER) as usize]
+        } else {
+            let k = self.slot[n as usize];
+            (k, k + 1)
+        };
+        &self.members[lo as usize..hi as usize]
+    }
+}
+
+/// What the link rules read of a node.
+#[derive(Clone, Copy, Debug)]
+pub struct Shape {
+    /// Centre of the bounding sphere.
+    pub centre: DVec3,
+    /// Its radius.
+    pub radius: f64,
+    /// Visible area.
+    pub area: f64,
+    /// Largest reflectance.
+    pub rho: f64,
+    /// Normal cone: axis and cosine of the half-angle (`-1`: full).
+    pub cone: (DVec3, f64),
+}
+
+/// The largest `max(0, n·u)` over normals `n` in `cone` and directions `u` within angle
+/// `alpha` of the unit vector `w`: `cos(max(0, φ - θ - α))`, with `φ` the angle between the
+/// cone's axis and `w` and `θ` the cone's half-angle (0 past a right angle).
+pub fn max_cos(cone: (DVec3, f64), w: DVec3, alpha: f64) -> f64 {
+    if cone.1 < 0.0 {
+        return 1.0;
+    }
+    let phi = cone.0.dot(w).clamp(-1.0, 1.0).acos();
+    let x = phi - cone.1.clamp(-1.0, 1.0).acos() - alpha;
+    if x <= 0.0 {
+        1.0
+    } else if x >= std::f64::consts::FRAC_PI_2 {
+        0.0
+    } else {
+        x.cos()
+    }
+}
+
+/// A link into a node (a cluster, or a root receiving from a cluster).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ClusterLink {
+    /// The source node.
+    pub src: u32,
+    /// Centre of the source's bounding sphere (where receiving leaves aim).
+    pub at: DVec3,
+    /// Projected area `P_S(w)` of the source toward the receiver.
+    pub p: f64,
+    /// Visible fraction.
+    pub v: f64,
+    /// Its standard error (binomial, Jeffreys).
+    pub v_se: f64,
+    /// Upper bound of the point factor over the pair.
+    pub f_up: f64,
+    /// Bound on the link's factor error, `F_up min(1, 4ds/(d - s)² + 2α + δ_v)`.
+    pub df: f64,
+    /// Largest reflectance of the receiver.
+    pub rho: f64,
+}
+
+/// The cluster links, by receiver.
+#[derive(Clone, Debug, Default)]
+pub struct Links {
+    /// Links into each cluster.
+    pub cluster: Vec<Vec<ClusterLink>>,
+    /// Links (from clusters) into each root.
+    pub root: Vec<Vec<ClusterLink>>,
+}
+
+impl Links {
+    /// Empty lists for `t` over `roots` roots.
+    pub fn new(t: &Tree, roots: usize) -> Links {
+        Links {
+            cluster: vec![Vec::new(); t.len()],
+            root: vec![Vec::new(); roots],
+        }
+    }
+
+    /// The links into node `n`.
+    pub fn into_node(&self, n: u32) -> &[ClusterLink] {
+        if is_cluster(n) {
+            &self.cluster[(n & !CLUSTER) as usize]
+        } else {
+            &self.root[n as usize]
+        }
+    }
+
+    fn list_mut(&mut self, n: u32) -> &mut Vec<ClusterLink> {
+        if is_cluster(n) {
+            &mut self.cluster[(n & !CLUSTER) as usize]
+        } else {
+            &mut self.root[n as usize]
+        }
+    }
+
+    /// Number of links.
+    pub fn len(&self) -> usize {
+        self.cluster.iter().chain(&self.root).map(Vec::len).sum()
+    }
+
+    /// True when there are none.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// Radiosity of every cluster: the visible-area mean over its roots, and the range its
+/// leaves cover (each root standing for `B ± spread / 2`).
+#[derive(Clone, Debug, Default)]
+pub struct Radiosity {
+    /// Mean radiosity per cluster.
+    pub b: Vec<[f64; 3]>,
+    /// Range per cluster.
+    pub spread: Vec<[f64; 3]>,
+}
+
+impl Radiosity {
+    /// Recomputes every cluster from the roots' radiosity `b` and spread `spread`
+    /// (children first).
+    pub fn pull(&mut self, t: &Tree, visible: &[f64], b: &[[f64; 3]], spread: &[[f64; 3]]) {
+        let n = t.len();
+        self.b.resize(n, [0.0; 3]);
+        self.spread.resize(n, [0.0; 3]);
+        let mut lo = vec![[f64::INFINITY; 3]; n];
+        let mut hi = vec![[f64::NEG_INFINITY; 3]; n];
+        for c in (0..n).rev() {
+            let mut sum = [0.0; 3];
+            for &k in &t.children[c] {
+                let (a, bk, l, h) = if is_cluster(k) {
+                    let i = (k & !CLUSTER) as usize;
+                    (t.area[i], self.b[i], lo[i], hi[i])
+                } else {
+                    let i = k as usize;
+                    let bk = b[i];
+                    let s = spread[i];
+                    if visible[i] > 0.0 {
+                        (
+                            visible[i],
+                            bk,
+                            std::array::from_fn(|j| bk[j] - 0.5 * s[j]),
+                            std::array::from_fn(|j| bk[j] + 0.5 * s[j]),
+                        )
+                    } else {
+                        (0.0, bk, [f64::INFINITY; 3], [f64::NEG_INFINITY; 3])
+                    }
+                };
+                for j in 0..3 {
+                    sum[j] += a * bk[j];
+                    lo[c][j] = lo[c][j].min(l[j]);
+                    hi[c][j] = hi[c][j].max(h[j]);
+                }
+            }
+            self.b[c] = if t.area[c] > 0.0 {
+                sum.map(|s| s / t.area[c])
+            } else {
+                [0.0; 3]
+            };
+            self.spread[c] = std::array::from_fn(|j| (hi[c][j] - lo[c][j]).max(0.0));
+        }
+    }
+}
+
+/// What the cluster refinement reads.
+pub struct Refiner<'a> {
+    /// The tree.
+    pub tree: &'a Tree,
+    /// The elements (roots are what the tree groups).
+    pub elements: &'a Elements,
+    /// Visible area per element.
+    pub visible: &'a [f64],
+    /// Largest reflectance per root.
+    pub rho_max: &'a [f64],
+    /// Visibility queries.
+    pub vis: &'a Visibility,
+    /// Element radiosity and spread.
+    pub b: &'a [[f64; 3]],
+    /// See `b`.
+    pub spread: &'a [[f64; 3]],
+    /// Cluster radiosity.
+    pub clusters: &'a Radiosity,
+    /// Radiosity assumed for sources not solved yet (0 once solved).
+    pub floor: f64,
+    /// Absolute link tolerance.
+    pub eps: f64,
+    /// Share of `eps` a link whose rays were all blocked may carry and be dropped.
+    pub hide: f64,
+    /// Rays per side: `rays²` per link.
+    pub rays: usize,
+    /// Seed of the random streams.
+    pub seed: u64,
+    /// Largest relative error bound `4ds/(d - s)² + 2α + δ_v` of an accepted link
+    /// ([`super::Settings::cluster_accuracy`]).
+    pub accuracy: f64,
+}
+
+/// What a pair of nodes becomes.
+#[derive(Clone, Debug)]
+enum Outcome {
+    Link(ClusterLink),
+    Elements(u32, u32),
+    Split(Vec<(u32, u32)>),
+    Drop,
+}
+
+impl Refiner<'_> {
+    /// The shape of node `n`.
+    pub fn shape(&self, n: u32) -> Shape {
+        let t = self.tree;
+        if is_cluster(n) {
+            let c = (n & !CLUSTER) as usize;
+            Shape {
+                centre: t.sphere[c].0,
+                radius: t.sphere[c].1,
+                area: t.area[c],
+                rho: t.rho[c],
+                cone: t.cone[c],
+            }
+        } else {
+            let e = self.elements;
+            let k = n as usize;
+            let centre = e.centre[k];
+            let radius = e
+                .corners(n)
+                .iter()
+                .map(|p| p.distance(centre))
+                .fold(0.0, f64::max);
+            Shape {
+                centre,
+                radius,
+                area: self.visible[k],
+                rho: self.rho_max[k],
+                cone: (e.normal[k], 1.0),
+            }
+        }
+    }
+
+    fn source(&self, n: u32) -> ([f64; 3], [f64; 3]) {
+        if is_cluster(n) {
+            let c = (n & !CLUSTER) as usize;
+            (self.clusters.b[c], self.clusters.spread[c])
+        } else {
+            (self.b[n as usize], self.spread[n as usize])
+        }
+    }
+
+    /// The bound-and-transfer terms of a source: the largest channel of `max(B_S, floor)`
+    /// and of its spread.
+    fn brightness(&self, n: u32) -> (f64, f64) {
+        let (b, s) = self.source(n);
+        let b = b.iter().copied().fold(0.0, f64::max).max(self.floor);
+        (b, s.iter().copied().fold(0.0, f64::max))
+    }
+
+    /// The pairs that replace `r ← s`: the larger node's children (by sphere radius; the
+    /// other's when the larger is a root).
+    fn split(&self, r: u32, s: u32, rs: &Shape, ss: &Shape) -> Vec<(u32, u32)> {
+        let t = self.tree;
+        let split_r = is_cluster(r) && (rs.radius >= ss.radius || !is_cluster(s));
+        if split_r {
+            let kids = t.children[(r & !CLUSTER) as usize];
+            kids.iter().map(|&c| (c, s)).collect()
+        } else {
+            let kids = t.children[(s & !CLUSTER) as usize];
+            kids.iter().map(|&c| (r, c)).collect()
+        }
+    }
+
+    /// Error of an existing link with today's radiosity.
+    pub fn error(&self, l: &ClusterLink) -> f64 {
+        let (b, ds) = self.brightness(l.src);
+        l.rho * (b * l.df + ds * l.f_up)
+    }
+
+    fn decide(&self, r: u32, s: u32) -> (Outcome, u64) {
+        let t = self.tree;
+        if r == s {
+            if !is_cluster(r) {
+                return (Outcome::Drop, 0);
+            }
+            let k = t.children[(r & !CLUSTER) as usize];
+            let pairs = k.iter().flat_map(|&a| k.iter().map(move |&b| (a, b)));
+            return (Outcome::Split(pairs.collect()), 0);
+        }
+        if !is_cluster(r) && !is_cluster(s) {
+            return (Outcome::Elements(r, s), 0);
+        }
+        let (rs, ss) = (self.shape(r), self.shape(s));
+        if rs.area <= 0.0 || ss.area <= 0.0 {
+            return (Outcome::Drop, 0);
+        }
+        let gap = rs.centre - ss.centre;
+        let d = gap.length();
+        let sum = rs.radius + ss.radius;
+        if d <= sum * (1.0 + 1e-9) {
+            return (Outcome::Split(self.split(r, s, &rs, &ss)), 0);
+        }
+        let w = gap / d;
+        let alpha = (sum / d).min(1.0).asin();
+        let c_s = max_cos(ss.cone, w, alpha);
+        let c_r = max_cos(rs.cone, -w, alpha);
+        let near = d - sum;
+        let f_up = ss.area * c_s * c_r / (std::f64::consts::PI * near * near);
+        if f_up <= 0.0 {
+            return (Outcome::Drop, 0);
+        }
+        let geo = 4.0 * d * sum / (near * near) + 2.0 * alpha;
+        let (b, ds) = self.brightness(s);
+        let err = |rel: f64| rs.rho * (b * f_up * rel.min(1.0) + ds * f_up);
+        if err(geo) > self.eps {
+            return (Outcome::Split(self.split(r, s, &rs, &ss)), 0);
+        }
+        let seen = self.transmittance(r, s);
+        let n = (self.rays * self.rays) as f64;
+        if seen.free == 0 && seen.blocked > 0 {
+            if rs.rho * b * f_up * 3.0 / n <= self.hide * self.eps {
+                return (Outcome::Drop, seen.rays);
+            }
+            return (Outcome::Split(self.split(r, s, &rs, &ss)), seen.rays);
+        }
+        let dv = if seen.free > 0 && seen.blocked > 0 || seen.free == 0 {
+            1.0
+        } else {
+            fraction_se(1.0, n)
+        };
+        if err(geo + dv) > self.eps || geo + dv > self.accuracy {
+            return (Outcome::Split(self.split(r, s, &rs, &ss)), seen.rays);
+        }
+        let p = self.projected(s, w);
+        if p <= 0.0 {
+            return (Outcome::Drop, seen.rays);
+        }
+        let link = ClusterLink {
+            src: s,
+            at: ss.centre,
+            p,
+            v: seen.v,
+            v_se: fraction_se(seen.v, n),
+            f_up,
+            df: f_up * (geo + dv).min(1.0),
+            rho: rs.rho,
+        };
+        (Outcome::Link(link), seen.rays)
+    }
+
+    /// `P_S(w) = Σ_j A_j max(0, n_j·w)` over the roots of `s`.
+    pub fn projected(&self, s: u32, w: DVec3) -> f64 {
+        let e = self.elements;
+        self.tree
+            .roots_of(s)
+            .iter()
+            .map(|&m| self.visible[m as usize] * e.normal[m as usize].dot(w).max(0.0))
+            .sum()
+    }
+
+    /// A point of node `n` drawn by area, its normal and its area weight (Jacobian over
+    /// the root's area).
+    fn sample(&self, n: u32, rng: &mut Pcg32) -> Option<(DVec3, DVec3, f64)> {
+        let t = self.tree;
+        let roots = t.roots_of(n);
+        let lo = if is_cluster(n) {
+            t.range[(n & !CLUSTER) as usize].0 as usize
+        } else {
+            t.slot[n as usize] as usize
+        };
+        let (a, b) = (t.cum[lo], t.cum[lo + roots.len()]);
+        if b <= a {
+            return None;
+        }
+        let x = a + rng.next_f64() * (b - a);
+        let k = t.cum[lo + 1..lo + roots.len()].partition_point(|&c| c <= x);
+        let m = roots[k.min(roots.len() - 1)];
+        let (p, j) = self.elements.point(m, rng.next_f64(), rng.next_f64());
+        let area = self.elements.area[m as usize];
+        Some((p, self.elements.normal[m as usize], j / area.max(1e-300)))
+    }
+
+    /// Kernel-weighted visible fraction between nodes `r` and `s` from `rays²` segments
+    /// between area-sampled points (a transmittance estimate; pairs that do not face each
+    /// other carry no weight and cast no ray).
+    fn transmittance(&self, r: u32, s: u32) -> Seen {
+        let mut rng = Pcg32::keyed(
+            self.seed,
+            0x434c_5553_0000_0000 | u64::from(r),
+            u64::from(s),
+            0,
+        );
+        let cells = self.rays * self.rays;
+        let mut segs: Vec<SegmentRay> = Vec::with_capacity(cells);
+        let mut weights = Vec::with_capacity(cells);
+        for _ in 0..cells {
+            let (Some((x, nx, jx)), Some((y, ny, jy))) =
+                (self.sample(r, &mut rng), self.sample(s, &mut rng))
+            else {
+                continue;
+            };
+            let d = y - x;
+            let r2 = d.length_squared();
+            let (cx, cy) = (nx.dot(d), -ny.dot(d));
+            if cx <= 0.0 || cy <= 0.0 || r2 <= 0.0 {
+                continue;
+            }
+            weights.push(cx * cy / (r2 * r2) * jx * jy);
+            segs.push(self.vis.segment_ray(x, nx, y, ny));
+        }
+        if segs.is_empty() {
+            return Seen {
+                v: 1.0,
+                free: 0,
+                blocked: 0,
+                rays: 0,
+            };
+        }
+        let mut free = vec![false; segs.len()];
+        self.vis.segments_visible(&segs, &mut free);
+        let (mut num, mut den) = (0.0, 0.0);
+        for (w, &f) in weights.iter().zip(&free) {
+            den += w;
+            if f {
+                num += w;
+            }
+        }
+        let nfree = free.iter().filter(|&&f| f).count();
+        Seen {
+            v: if den > 0.0 { num / den } else { 0.0 },
+            free: nfree,
+            blocked: free.len() - nfree,
+            rays: segs.len() as u64,
+        }
+    }
+}
+
+/// What the rays between two nodes found.
+struct Seen {
+    v: f64,
+    free: usize,
+    blocked: usize,
+    rays: u64,
+}
+
+/// What a round of cluster refinement produced.
+#[derive(Clone, Debug, Default)]
+pub struct Made {
+    /// Pairs of roots, for element links.
+    pub specs: Vec<(u32, u32)>,
+    /// Cluster links made.
+    pub links: usize,
+    /// Pairs examined.
+    pub pairs: usize,
+    /// Rays cast.
+    pub rays: u64,
+}
+
+/// Refines the pairs `start` until every pair is a cluster link (added to `links`), a pair
+/// of roots (returned, for element links), or dropped; a level of pairs at a time, in
+/// parallel, in a fixed order.
+pub fn refine(f: &Refiner, start: Vec<(u32, u32)>, links: &mut Links) -> Made {
+    let mut made = Made::default();
+    let mut frontier = start;
+    while !frontier.is_empty() {
+        made.pairs += frontier.len();
+        let out: Vec<(Outcome, u64)> = frontier.par_iter().map(|&(r, s)| f.decide(r, s)).collect();
+        let mut next = Vec::new();
+        for (&(r, _), (o, rays)) in frontier.iter().zip(out) {
+            made.rays += rays;
+            match o {
+                Outcome::Link(l) => {
+                    links.list_mut(r).push(l);
+                    made.links += 1;
+                }
+                Outcome::Elements(a, b) => made.specs.push((a, b)),
+                Outcome::Split(p) => next.extend(p),
+                Outcome::Drop => {}
+            }
+        }
+        frontier = next;
+    }
+    made
+}
+
+/// Re-examines every cluster link with today's radiosity; those over the tolerance are
+/// replaced by their children's pairs, refined as in [`refine`]. Returns what was made
+/// and the number of links replaced.
+pub fn recheck(f: &Refiner, links: &mut Links) -> (Made, usize) {
+    let mut start = Vec::new();
+    let mut replaced = 0;
+    let t = f.tree;
+    let nodes: Vec<u32> = (0..t.len() as u32)
+        .map(|c| c | CLUSTER)
+        .chain(0..links.root.len() as u32)
+        .collect();
+    for &r in &nodes {
+        let list = links.list_mut(r);
+        let mut kept = Vec::with_capacity(list.len());
+        for l in list.drain(..) {
+            if f.error(&l) > f.eps {
+                let (rs, ss) = (f.shape(r), f.shape(l.src));
+                start.extend(f.split(r, l.src, &rs, &ss));
+                replaced += 1;
+            } else {
+                kept.push(l);
+            }
+        }
+        *links.list_mut(r) = kept;
+    }
+    (refine(f, start, links), replaced)
+}
+
+/// Most pieces a link's source is cut into for the gather.
+pub const MAX_PIECES: usize = 64;
+
+/// A piece of a cluster link's source, as the gather sees it: the node, its centre and
+/// its projected area toward the receiver.
+pub type Piece = (u32, DVec3, f64);
+
+/// The pieces of every cluster link's source, by receiver (parallel to [`Links`]).
+#[derive(Clone, Debug, Default)]
+pub struct Pieces {
+    cluster: Vec<Vec<Vec<Piece>>>,
+    root: Vec<Vec<Vec<Piece>>>,
+}
+
+impl Pieces {
+    fn of(&self, n: u32) -> &[Vec<Piece>] {
+        if is_cluster(n) {
+            &self.cluster[(n & !CLUSTER) as usize]
+        } else {
+            &self.root[n as usize]
+        }
+    }
+}
+
+impl Refiner<'_> {
+    /// The source of link `l` into `r` as the gather sees it. A cluster's mean radiosity
+    /// times its projected area is not its exitance toward `r` when its radiosity varies
+    /// with orientation (the tops of spheres under a light are brighter than their
+    /// bottoms, and they are what the ceiling sees): the source is cut into its children,
+    /// each with its own radiosity, centre and projected area, while the share of the
+    /// link it carries times its spread, `ρ_R F_up (P_n / P_S) ΔB_n`, is above
+    /// `descend × eps` (at most [`MAX_PIECES`] pieces), as the element gather does with
+    /// split sources.
+    pub fn pieces(&self, r: u32, l: &ClusterLink, descend: f64) -> Vec<Piece> {
+        let rc = self.shape(r).centre;
+        let mut out = Vec::new();
+        let mut stack = vec![l.src];
+        while let Some(n) = stack.pop() {
+            let c = self.shape(n).centre;
+            let w = (rc - c).normalize_or_zero();
+            let p = self.projected(n, w);
+            if p <= 0.0 {
+                continue;
+            }
+            let ds = self.source(n).1.iter().copied().fold(0.0, f64::max);
+            let share = l.rho * l.f_up * (p / l.p.max(1e-300)).min(1.0) * ds;
+            if is_cluster(n)
+                && share > descend * self.eps
+                && out.len() + stack.len() + 2 <= MAX_PIECES
+            {
+                stack.extend(self.tree.children[(n & !CLUSTER) as usize]);
+            } else {
+                out.push((n, c, p));
+            }
+        }
+        out
+    }
+
+    /// [`Refiner::pieces`] of every link.
+    pub fn all_pieces(&self, links: &Links, descend: f64) -> Pieces {
+        let per = |lists: &[Vec<ClusterLink>], cluster: bool| -> Vec<Vec<Vec<Piece>>> {
+            lists
+                .par_iter()
+                .enumerate()
+                .map(|(k, list)| {
+                    let r = if cluster {
+                        k as u32 | CLUSTER
+                    } else {
+                        k as u32
+                    };
+                    list.iter().map(|l| self.pieces(r, l, descend)).collect()
+                })
+                .collect()
+        };
+        Pieces {
+            cluster: per(&links.cluster, true),
+            root: per(&links.root, false),
+        }
+    }
+}
+
+/// Solid angle of the planar polygon `poly` (corners counter-clockwise from its front,
+/// normal `n`) seen from `y`, 0 when `y` is not in front of it: the sum over a fan of
+/// triangles of Van Oosterom and Strackee's formula ("The solid angle of a plane triangle",
+/// IEEE Trans. Biomed. Eng. 30, 1983), `tan(Ω/2) = |a·(b×c)| / (abc + (a·b)c + (a·c)b +
+/// (b·c)a)` with `a, b, c` the corners relative to `y`.
+pub fn solid_angle(y: DVec3, poly: &[DVec3], n: DVec3) -> f64 {
+    if poly.len() < 3 || n.dot(y - poly[0]) <= 0.0 {
+        return 0.0;
+    }
+    let mut sum = 0.0;
+    for k in 1..poly.len() - 1 {
+        let (a, b, c) = (poly[0] - y, poly[k] - y, poly[k + 1] - y);
+        let (la, lb, lc) = (a.length(), b.length(), c.length());
+        let num = a.dot(b.cross(c)).abs();
+        let den = la * lb * lc + a.dot(b) * lc + a.dot(c) * lb + b.dot(c) * la;
+        sum += 2.0 * num.atan2(den);
+    }
+    sum
+}
+
+/// The factor of element `l` from a piece of a link's source seen through visible
+/// fraction `v`: the piece as a point source of intensity `B P / π` at its centre, so that
+/// the element's mean irradiance is `B P Ω / (π A_l)` with `Ω` the element's solid angle
+/// from that centre ([`solid_angle`]; the element's own extent is integrated exactly, not
+/// sampled at its centre, whose `1/r²` would be biased low by convexity).
+pub fn piece_factor(piece: &Piece, v: f64, e: &Elements, l: u32) -> f64 {
+    let li = l as usize;
+    let a = e.area[li];
+    if a <= 0.0 {
+        return 0.0;
+    }
+    piece.2 * v * solid_angle(piece.1, e.corners(l), e.normal[li]) / (std::f64::consts::PI * a)
+}
+
+/// For each element of `targets`, the cluster links on its root's chain (the root's own
+/// and its clusters') as `(source node, factor, standard error)` entries, one per piece of
+/// the link's source ([`Refiner::pieces`], [`piece_factor`]); nothing for buried
+/// elements.
+pub fn expand(
+    t: &Tree,
+    e: &Elements,
+    links: &Links,
+    pieces: &Pieces,
+    targets: &[u32],
+) -> Vec<Vec<(u32, f64, f64)>> {
+    let none = links.is_empty();
+    targets
+        .par_iter()
+        .map(|&l| {
+            let li = l as usize;
+            let mut out = Vec::new();
+            if e.buried[li] || none {
+                return out;
+            }
+            let root = e.root[li];
+            let mut node = root;
+            let mut parent = t.root_parent.get(root as usize).copied().unwrap_or(NONE);
+            loop {
+                for (k, ps) in links.into_node(node).iter().zip(pieces.of(node)) {
+                    let rel = k.v_se / k.v.max(1e-300);
+                    for p in ps {
+                        let f = piece_factor(p, k.v, e, l);
+                        if f > 0.0 {
+                            out.push((p.0, f, f * rel));
+                        }
+                    }
+                }
+                if parent == NONE {
+                    break;
+                }
+                node = parent | CLUSTER;
+                parent = t.parent[parent as usize];
+            }
+            out
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::formfactor::exact::Piece as Shape2;
+
+    fn grid(n: usize) -> Elements {
+        // An n x n grid of unit squares in z = 0 facing +z, and the same tilted up by 90°
+        // along x = 0 facing +x: two groups of roots.
+        let mut e = Elements::default();
+        for i in 0..n {
+            for j in 0..n {
+                let (x, y) = (i as f64, j as f64);
+                e.add_root(
+                    Shape2::Quad([
+                        DVec3::new(x, y, 0.0),
+                        DVec3::new(x + 1.0, y, 0.0),
+                        DVec3::new(x + 1.0, y + 1.0, 0.0),
+                        DVec3::new(x, y + 1.0, 0.0),
+                    ]),
+                    DVec3::Z,
+                );
+                e.add_root(
+                    Shape2::Quad([
+                        DVec3::new(0.0, y, x),
+                        DVec3::new(0.0, y + 1.0, x),
+                        DVec3::new(0.0, y + 1.0, x + 1.0),
+                        DVec3::new(0.0, y, x + 1.0),
+                    ]),
+                    DVec3::X,
+                );
+            }
+        }
+        e
+    }
+
+    #[test]
+    fn tree_areas_sum_and_bounds_hold_their_roots() {
+        let e = grid(5);
+        let vis = e.visible_areas();
+        let t = Tree::build(&e, &vis, &vec![0.5; e.roots]);
+        assert_eq!(t.len(), e.roots - 1);
+        assert!((t.area[0] - 50.0).abs() < 1e-9, "{}", t.area[0]);
+        for c in 0..t.len() {
+            let kids: f64 = t.children[c]
+                .iter()
+                .map(|&k| {
+                    if is_cluster(k) {
+                        t.area[(k & !CLUSTER) as usize]
+                    } else {
+                        vis[k as usize]
+                    }
+                })
+                .sum();
+            assert!((kids - t.area[c]).abs() < 1e-9);
+            let (centre, r) = t.sphere[c];
+            for &m in t.roots_of(c as u32 | CLUSTER) {
+                for &p in e.corners(m) {
+                    assert!(p.distance(centre) <= r + 1e-12);
+                }
+                assert!(t.cone[c].1 <= e.normal[m as usize].dot(t.cone[c].0) + 1e-12);
+            }
+        }
+        // Every root is a leaf of the tree exactly once.
+        let mut seen = vec![0; e.roots];
+        for c in 0..t.len() {
+            for &k in &t.children[c] {
+                if !is_cluster(k) {
+                    seen[k as usize] += 1;
+                }
+            }
+        }
+        assert!(seen.iter().all(|&k| k == 1));
+    }
+
+    #[test]
+    fn solid_angle_of_a_rectangle_matches_its_closed_form() {
+        // An a x b rectangle seen from height h above its centre:
+        // Ω = 4 asin(ab / √((a² + 4h²)(b² + 4h²))).
+        let (a, b) = (2.0f64, 1.0f64);
+        let poly = [
+            DVec3::new(-1.0, -0.5, 0.0),
+            DVec3::new(1.0, -0.5, 0.0),
+            DVec3::new(1.0, 0.5, 0.0),
+            DVec3::new(-1.0, 0.5, 0.0),
+        ];
+        for h in [0.01f64, 0.3, 1.0, 10.0] {
+            let exact =
+                4.0 * (a * b / ((a * a + 4.0 * h * h) * (b * b + 4.0 * h * h)).sqrt()).asin();
+            let got = solid_angle(DVec3::new(0.0, 0.0, h), &poly, DVec3::Z);
+            assert!(
+                (got - exact).abs() < 1e-12 * exact.max(1.0),
+                "h {h}: {got} vs {exact}"
+            );
+            assert_eq!(solid_angle(DVec3::new(0.0, 0.0, -h), &poly, DVec3::Z), 0.0);
+        }
+    }
+
+    #[test]
+    fn cone_bound_is_a_bound() {
+        let mut rng = Pcg32::keyed(7, 1, 2, 3);
+        let unit = |rng: &mut Pcg32| {
+            let z: f64 = 2.0 * rng.next_f64() - 1.0;
+            let phi = std::f64::consts::TAU * rng.next_f64();
+            let s = (1.0 - z * z).sqrt();
+            DVec3::new(s * phi.cos(), s * phi.sin(), z)
+        };
+        for _ in 0..2000 {
+            let axis = unit(&mut rng);
+            let half: f64 = 1.2 * rng.next_f64();
+            let w = unit(&mut rng);
+            let alpha = 0.5 * rng.next_f64();
+            let bound = max_cos((axis, half.cos()), w, alpha);
+            // A normal in the cone and a direction within alpha of w.
+            let n = (axis + half * rng.next_f64() * unit(&mut rng)).normalize();
+            if n.dot(axis) < half.cos() {
+                continue;
+            }
+            let u = (w + alpha * rng.next_f64() * unit(&mut rng)).normalize();
+            if u.dot(w) < alpha.cos() {
+                continue;
+            }
+            assert!(n.dot(u).max(0.0) <= bound + 1e-12);
+        }
+    }
+}

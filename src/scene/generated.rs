@@ -1,0 +1,306 @@
+//! Generated scenes of many small faces, for the hierarchical solver's clustering and its
+//! scaling measurements: `room-spheres-N`, a 5 x 3 x 4 m room lit by a 1 x 1 m ceiling
+//! light with `N` grey spheres of 1280 triangles each (icospheres, three subdivisions of
+//! the icosahedron) floating on a regular grid below the light. The scene depends only on
+//! `N`: the same name gives the same triangles, bit for bit.
+//!
+//! The room matches `scenes/room-sphere.obj` (floor at y = 0, up +y, white walls of
+//! reflectance 0.7, the wall at x = 0 pale blue, the light 1 cm below the ceiling,
+//! emitting 10); spheres have reflectance 0.5.
+
+use std::fmt::Write;
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+
+use super::{obj, Scene};
+use crate::error::Result;
+
+/// Triangles per sphere.
+pub const SPHERE_TRIANGLES: usize = 1280;
+
+/// Most spheres a name may ask for.
+pub const MAX_SPHERES: usize = 4000;
+
+/// The generated scenes listed by `radiosity scenes`: about 10^4, 3·10^4, 10^5, 3·10^5
+/// and 10^6 triangles.
+pub const LISTED: &[&str] = &[
+    "room-spheres-8",
+    "room-spheres-24",
+    "room-spheres-80",
+    "room-spheres-240",
+    "room-spheres-800",
+];
+
+/// The number of spheres a generated scene's name asks for, if it names one.
+pub fn spheres(name: &str) -> Option<usize> {
+    let n: usize = name.strip_prefix("room-spheres-")?.parse().ok()?;
+    (1..=MAX_SPHERES).contains(&n).then_some(n)
+}
+
+/// One line on a generated scene (`radiosity scenes`).
+pub fn describe(name: &str) -> Option<String> {
+    let n = spheres(name)?;
+    Some(format!(
+        "room, ceiling light, {n} spheres: {} triangles, 7 quads",
+        n * SPHERE_TRIANGLES
+    ))
+}
+
+const MTL: &str = "newmtl white\nKd 0.7 0.7 0.7\nnewmtl blue\nKd 0.6 0.65 0.7\n\
+newmtl grey\nKd 0.5 0.5 0.5\nnewmtl light\nKd 0.78 0.78 0.78\nKe 10 10 10\n";
+
+/// The unit icosphere: vertices and outward (counter-clockwise from outside) triangles.
+pub fn icosphere(subdivisions: usize) -> (Vec<DVec3>, Vec<[usize; 3]>) {
+    let t = (1.0 + 5f64.sqrt()) / 2.0;
+    let mut v: Vec<DVec3> = [
+        (-1.0, t, 0.0),
+        (1.0, t, 0.0),
+        (-1.0, -t, 0.0),
+        (1.0, -t, 0.0),
+        (0.0, -1.0, t),
+        (0.0, 1.0, t),
+        (0.0, -1.0, -t),
+        (0.0, 1.0, -t),
+        (t, 0.0, -1.0),
+        (t, 0.0, 1.0),
+        (-t, 0.0, -1.0),
+        (-t, 0.0, 1.0),
+    ]
+    .iter()
+    .map(|&(x, y, z)| DVec3::new(x, y, z).normalize())
+    .collect();
+    let mut f: Vec<[usize; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..subdivisions {
+        let mut mid = std::collections::HashMap::new();
+        let mut next = Vec::with_capacity(f.len() * 4);
+        let mut midpoint = |a: usize, b: usize, v: &mut Vec<DVec3>| -> usize {
+            *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                v.push(((v[a] + v[b]) * 0.5).normalize());
+                v.len() - 1
+            })
+        };
+        for &[a, b, c] in &f {
+            let ab = midpoint(a, b, &mut v);
+            let bc = midpoint(b, c, &mut v);
+            let ca = midpoint(c, a, &mut v);
+            next.extend([[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
+        }
+        f = next;
+    }
+    // Outward: the normal agrees with the centroid's direction.
+    for t in &mut f {
+        let (a, b, c) = (v[t[0]], v[t[1]], v[t[2]]);
+        if (b - a).cross(c - a).dot(a + b + c) < 0.0 {
+            t.swap(1, 2);
+        }
+    }
+    (v, f)
+}
+
+/// Centres and radius of `n` spheres on a regular grid inside the room, below the light.
+pub fn placement(n: usize) -> (Vec<DVec3>, f64) {
+    let (lo, hi) = (DVec3::new(0.4, 0.3, 0.4), DVec3::new(4.6, 2.5, 3.6));
+    let ext = hi - lo;
+    // Cells as close to cubes as the count allows.
+    let side = (ext.x * ext.y * ext.z / n as f64).cbrt();
+    let mut dims = [
+        (ext.x / side).round().max(1.0) as usize,
+        (ext.y / side).round().max(1.0) as usize,
+        (ext.z / side).round().max(1.0) as usize,
+    ];
+    while dims[0] * dims[1] * dims[2] < n {
+        // Grow the axis with the largest cells.
+        let k = (0..3)
+            .max_by(|&a, &b| (ext[a] / dims[a] as f64).total_cmp(&(ext[b] / dims[b] as f64)))
+            .unwrap_or(0);
+        dims[k] += 1;
+    }
+    let cell = DVec3::new(
+        ext.x / dims[0] as f64,
+        ext.y / dims[1] as f64,
+        ext.z / dims[2] as f64,
+    );
+    let radius = 0.35 * cell.min_element();
+    let mut centres = Vec::with_capacity(n);
+    'fill: for j in 0..dims[1] {
+        for k in 0..dims[2] {
+            for i in 0..dims[0] {
+                if centres.len() == n {
+                    break 'fill;
+                }
+                let c = DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5);
+                centres.push(lo + c * cell);
+            }
+        }
+    }
+    (centres, radius)
+}
+
+/// The OBJ text of `room-spheres-n`.
+pub fn obj_text(n: usize) -> String {
+    let mut o = String::new();
+    let _ = writeln!(
+        o,
+        "# room-spheres-{n}: generated (radiosity::scene::generated)\nmtllib generated.mtl"
+    );
+    let quads: [(&str, &str, [[f64; 3]; 4]); 7] = [
+        (
+            "floor",
+            "white",
+            [[0., 0., 0.], [0., 0., 4.], [5., 0., 4.], [5., 0., 0.]],
+        ),
+        (
+            "ceiling",
+            "white",
+            [[0., 3., 0.], [5., 3., 0.], [5., 3., 4.], [0., 3., 4.]],
+        ),
+        (
+            "wall_z0",
+            "white",
+            [[0., 0., 0.], [5., 0., 0.], [5., 3., 0.], [0., 3., 0.]],
+        ),
+        (
+            "wall_z4",
+            "white",
+            [[0., 0., 4.], [0., 3., 4.], [5., 3., 4.], [5., 0., 4.]],
+        ),
+        (
+            "wall_x0",
+            "blue",
+            [[0., 0., 0.], [0., 3., 0.], [0., 3., 4.], [0., 0., 4.]],
+        ),
+        (
+            "wall_x5",
+            "white",
+            [[5., 0., 0.], [5., 0., 4.], [5., 3., 4.], [5., 3., 0.]],
+        ),
+        (
+            "light",
+            "light",
+            [
+                [2., 2.99, 1.5],
+                [3., 2.99, 1.5],
+                [3., 2.99, 2.5],
+                [2., 2.99, 2.5],
+            ],
+        ),
+    ];
+    let mut base = 1;
+    for (name, mtl, q) in quads {
+        let _ = writeln!(o, "o {name}\nusemtl {mtl}");
+        for p in q {
+            let _ = writeln!(o, "v {} {} {}", p[0], p[1], p[2]);
+        }
+        let _ = writeln!(o, "f {} {} {} {}", base, base + 1, base + 2, base + 3);
+        base += 4;
+    }
+    let (v, f) = icosphere(3);
+    let (centres, radius) = placement(n);
+    for (k, c) in centres.iter().enumerate() {
+        let _ = writeln!(o, "o sphere_{k}\nusemtl grey");
+        for p in &v {
+            let q = *c + *p * radius;
+            let _ = writeln!(o, "v {:.9} {:.9} {:.9}", q.x, q.y, q.z);
+        }
+        for t in &f {
+            let _ = writeln!(o, "f {} {} {}", base + t[0], base + t[1], base + t[2]);
+        }
+        base += v.len();
+    }
+    o
+}
+
+/// The generated scene `name`, or `None` when the name is not one.
+pub fn load(name: &str) -> Result<Option<Scene>> {
+    let Some(n) = spheres(name) else {
+        return Ok(None);
+    };
+    let label = PathBuf::from(format!("{name}.obj"));
+    let mut scene = obj::parse(name, &label, &obj_text(n), &|_lib: &str| {
+        Ok((Path::new("generated.mtl").to_path_buf(), MTL.to_string()))
+    })?;
+    scene.source = format!("generated:{name}");
+    Ok(Some(scene))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn icosphere_is_closed_outward_and_round() {
+        let (v, f) = icosphere(3);
+        assert_eq!(f.len(), SPHERE_TRIANGLES);
+        assert_eq!(v.len(), 642);
+        // Every edge shared by exactly two triangles, in opposite directions.
+        let mut edges = std::collections::HashMap::new();
+        for t in &f {
+            for k in 0..3 {
+                *edges.entry((t[k], t[(k + 1) % 3])).or_insert(0) += 1;
+            }
+        }
+        for (&(a, b), &c) in &edges {
+            assert_eq!(c, 1);
+            assert_eq!(edges.get(&(b, a)), Some(&1));
+        }
+        // Enclosed volume (divergence theorem) near the unit ball's, positive: outward.
+        let vol: f64 = f
+            .iter()
+            .map(|t| v[t[0]].dot(v[t[1]].cross(v[t[2]])) / 6.0)
+            .sum();
+        assert!(
+            (vol - 4.0 / 3.0 * std::f64::consts::PI).abs() < 0.05,
+            "{vol}"
+        );
+    }
+
+    #[test]
+    fn spheres_fit_the_room_and_do_not_touch() {
+        for n in [1, 8, 24, 80, 800] {
+            let (c, r) = placement(n);
+            assert_eq!(c.len(), n);
+            for (i, a) in c.iter().enumerate() {
+                assert!(a.x - r > 0.0 && a.x + r < 5.0 && a.z - r > 0.0 && a.z + r < 4.0);
+                assert!(a.y - r > 0.0 && a.y + r < 2.99);
+                for b in &c[..i] {
+                    assert!(a.distance(*b) > 2.0 * r);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn names_give_the_same_scene() {
+        assert_eq!(spheres("room-spheres-8"), Some(8));
+        assert_eq!(spheres("room-spheres-0"), None);
+        assert_eq!(spheres("room-spheres-x"), None);
+        let a = load("room-spheres-2").unwrap().unwrap();
+        let b = load("room-spheres-2").unwrap().unwrap();
+        assert_eq!(a.faces.len(), 7 + 2 * SPHERE_TRIANGLES);
+        assert_eq!(format!("{:?}", a.faces), format!("{:?}", b.faces));
+        assert!(a.warnings.is_empty(), "{:?}", a.warnings);
+        a.require_emitter().unwrap();
+    }
+}
