@@ -19,7 +19,7 @@
 //! `F_up = A_S c_S c_R / (π (d - s)²)`
 //!
 //! (every point kernel `cos θ_x cos θ_y / (π r²)` over `S` with `r ≥ d - s`; `c_S`, `c_R`
-//! the cone bounds of the cosines, [`Tree::max_cos`]). The link is one point-to-cluster
+//! the cone bounds of the cosines, [`max_cos`]). The link is one point-to-cluster
 //! transfer: a receiving leaf `l` at `x_l` with normal `n_l` gathers
 //!
 //! `f_lS = P_S(w) max(0, n_l·ŵ_l) v / (π |c_S - x_l|²)`,
