@@ -372,13 +372,7 @@ pub fn compute(
                 }
             }
             report.pack_seconds = t_pack.elapsed().as_secs_f64();
-            // A rank done packing waits here, asleep, not spinning in the exchange.
-            let t = Instant::now();
-            cluster.wait_for_all()?;
-            report.wait_seconds += t.elapsed().as_secs_f64();
-            let t = Instant::now();
-            let got = cluster.exchange(send)?;
-            report.exchange_seconds = t.elapsed().as_secs_f64();
+            let got = exchange_timed(cluster, send, &mut report)?;
             let tr: Traffic = cluster.traffic() - traffic0;
             (report.sent, report.received) = (tr.sent, tr.received);
             // Every rank's report now, before rank 0 assembles alone: the others are done.
@@ -466,12 +460,7 @@ pub fn compute(
                 });
             }
             report.pack_seconds = t_pack.elapsed().as_secs_f64();
-            let t = Instant::now();
-            cluster.wait_for_all()?;
-            report.wait_seconds += t.elapsed().as_secs_f64();
-            let t = Instant::now();
-            let got = cluster.exchange(send)?;
-            report.exchange_seconds = t.elapsed().as_secs_f64();
+            let got = exchange_timed(cluster, send, &mut report)?;
             let t = Instant::now();
             // Every part received, by row: the rank that computed a row sends each rank
             // one part of it at most (the whole row to its home, the columns of their
@@ -525,6 +514,18 @@ fn assemble(
     ff.replicates = est.replicates();
     ff.unresolved = est.unresolved();
     ff
+}
+
+/// Waits for every rank (a rank done packing sleeps here rather than spinning in the
+/// exchange), then exchanges `send`, adding both times to `report`.
+fn exchange_timed(cluster: &dyn Cluster, send: Packed, report: &mut RankReport) -> Result<Packed> {
+    let t = Instant::now();
+    cluster.wait_for_all()?;
+    report.wait_seconds += t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let got = cluster.exchange(send)?;
+    report.exchange_seconds = t.elapsed().as_secs_f64();
+    Ok(got)
 }
 
 #[cfg(test)]
