@@ -179,7 +179,9 @@ fn shadows_and_contacts_refine_and_refinement_stops_at_the_tolerance() {
         sum <= 1.0 + bar.allowance(5.0),
         "largest leaf factor sum {sum} ± {bar}"
     );
-    assert!(bar.magnitude() < 0.02, "bar {bar}");
+    // The bar stays small (a partly buried leaf's includes the error of its measured
+    // exposed fraction, by which its factors are divided).
+    assert!(bar.magnitude() < 0.05, "bar {bar}");
     // Floor leaves (normal +y, y = 0) within 3 mm of the short block's edge from
     // (130, 65) to (290, 114), outside the block, are at the minimum size.
     let (a, b) = (
@@ -377,4 +379,24 @@ fn furnace_with_clusters() {
     assert!((mean - 2.0).abs() / 2.0 < 0.02, "mean B {mean}");
     assert!(worst < 0.1, "worst leaf {worst}");
     assert!(balance < 0.05, "power balance {balance:e}");
+}
+
+/// The Cornell box closed by a front wall, every face ρ 0.5 and E 1: B = 2 everywhere
+/// (`scenes/cornell-furnace.obj`), at default settings. What a bake loses here is one-sided
+/// (links and gather entries that miss light), so the mean radiosity and the power balance
+/// measure it. Measured: mean 1.9982 (-0.09%), 0.18% of the power unaccounted for; before
+/// partly buried leaves were measured and the refinement decided on unoccluded factors,
+/// 1.9959 and 0.41%.
+#[test]
+fn cornell_furnace_keeps_its_light() {
+    let (_, sol) = solve(
+        "scenes/cornell-furnace.obj",
+        Resolution::DiagonalFraction(0.25),
+        &Settings::default(),
+    );
+    let r = &sol.report;
+    let mean = r.mean_radiosity;
+    assert!((mean - 2.0).abs() < 3e-3, "mean radiosity {mean}");
+    let lost = (r.emitted[0] - r.absorbed[0]) / r.emitted[0];
+    assert!(lost.abs() < 3e-3, "power unaccounted for {lost:e}");
 }

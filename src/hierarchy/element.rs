@@ -49,6 +49,12 @@ pub struct Elements {
     /// ancestors' visibility (sampled on their unburied leaves) says nothing of it, so it
     /// traces its own.
     pub partly: Vec<bool>,
+    /// The fraction of the element's area outside every closed solid: 1 for a leaf in the
+    /// open, 0 for a buried one, measured for a partly buried one ([`super::refine::bury`]).
+    /// A leaf's *visible area* is this times its area.
+    pub exposed: Vec<f64>,
+    /// The standard error of `exposed` (0 where it is not measured).
+    pub exposed_se: Vec<f64>,
     /// Number of roots (elements `0..roots`).
     pub roots: usize,
 }
@@ -101,6 +107,8 @@ impl Elements {
         self.level.push(level);
         self.buried.push(false);
         self.partly.push(false);
+        self.exposed.push(1.0);
+        self.exposed_se.push(0.0);
         id
     }
 
@@ -150,18 +158,24 @@ impl Elements {
         self.piece[e as usize].corners()
     }
 
-    /// Visible area of every element: a leaf's area unless it is buried, a parent's the sum
-    /// of its children's. Children always have larger indices than their parent, so one
-    /// backward pass suffices.
+    /// Visible area of leaf `l`: its area outside closed solids (0 when buried).
+    pub fn visible_area(&self, l: u32) -> f64 {
+        let li = l as usize;
+        if self.buried[li] {
+            0.0
+        } else {
+            self.area[li] * self.exposed[li]
+        }
+    }
+
+    /// Visible area of every element: a leaf's [`Elements::visible_area`], a parent's the
+    /// sum of its children's. Children always have larger indices than their parent, so
+    /// one backward pass suffices.
     pub fn visible_areas(&self) -> Vec<f64> {
         let mut vis = vec![0.0; self.len()];
         for e in (0..self.len()).rev() {
             vis[e] = if self.first_child[e] == NONE {
-                if self.buried[e] {
-                    0.0
-                } else {
-                    self.area[e]
-                }
+                self.visible_area(e as u32)
             } else {
                 let c = self.first_child[e] as usize;
                 vis[c..c + 4].iter().sum()

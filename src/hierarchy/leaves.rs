@@ -83,7 +83,7 @@ pub fn leaf_mesh(
         let patch = set.area.len() as u32;
         let root = e.root[li] as usize;
         set.corners.push(corner_ids[k]);
-        set.area.push(if e.buried[li] { 0.0 } else { e.area[li] });
+        set.area.push(e.visible_area(l));
         set.normal.push(e.normal[li]);
         set.centroid.push(e.centre[li]);
         set.material.push(roots.material[root]);

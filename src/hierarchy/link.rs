@@ -64,6 +64,10 @@ pub struct Link {
     /// True when [`Blockers`] proved that nothing blocks the pair (no ray was cast): then
     /// nothing blocks any pair of their pieces either.
     pub proved: bool,
+    /// The unoccluded factor (`f` is this times `vis`): what the refinement decides on
+    /// where visibility was sampled, so that the rays' noise does not pick which links are
+    /// kept ([`super::refine::Oracle::error`]).
+    pub open: f64,
 }
 
 /// Most steps a proof takes before rays are cast instead
@@ -219,6 +223,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
             partial: false,
             vis: 1.0,
             proved: true,
+            open: f_open,
         };
         return (Some(link), cost);
     }
@@ -238,6 +243,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
             partial: true,
             vis: 0.0,
             proved: false,
+            open: f_open,
         }
     } else {
         let partial = seen.v < 1.0;
@@ -250,6 +256,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
             partial,
             vis: seen.v,
             proved: false,
+            open: f_open,
         }
     };
     (Some(link), cost)

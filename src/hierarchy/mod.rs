@@ -579,8 +579,9 @@ fn mean_radiosity(e: &Elements, state: &State) -> f64 {
     for l in e.leaves() {
         let li = l as usize;
         if !e.buried[li] {
-            sum += e.area[li] * luminance(state.b[li]);
-            area += e.area[li];
+            let a = e.visible_area(l);
+            sum += a * luminance(state.b[li]);
+            area += a;
         }
     }
     if area > 0.0 {
@@ -688,6 +689,9 @@ struct Entry {
     /// True when the visibility was traced from this leaf (and is traced again for pieces
     /// of the source).
     traced: bool,
+    /// The unoccluded factor: what decides whether the source is cut into pieces (not the
+    /// traced estimate, whose noise would then pick which entries are kept).
+    open: f64,
 }
 
 /// The leaves' gather lists: for each leaf, its own links as they are, and for every link
@@ -789,20 +793,34 @@ pub fn gather_lists(
                     // the relative tolerance and `t`.
                     q_bar: q_err * v,
                     traced,
+                    open: f,
                 })
             };
-            let mut stack: Vec<Entry> = links[li]
-                .iter()
-                .filter(|k| k.f > 0.0)
-                .map(|k| Entry {
-                    src: k.src,
-                    f: k.f,
-                    v: k.vis,
-                    v_bar: k.se / k.f,
-                    q_bar: k.err,
-                    traced: k.partial,
-                })
-                .collect();
+            // A partly buried leaf traces every entry: its rays from points inside the solid
+            // are blocked, so its traced factors are per whole area, and are divided by its
+            // exposed fraction below (a factor is per visible area).
+            let exposed = e.exposed[li];
+            let partly = exposed < 1.0;
+            let mut stack: Vec<Entry> = if partly {
+                links[li]
+                    .iter()
+                    .filter_map(|k| piece(k.src, Sight::Trace, &mut cost))
+                    .collect()
+            } else {
+                links[li]
+                    .iter()
+                    .filter(|k| k.f > 0.0)
+                    .map(|k| Entry {
+                        src: k.src,
+                        f: k.f,
+                        v: k.vis,
+                        v_bar: k.se / k.f,
+                        q_bar: k.err,
+                        traced: k.partial,
+                        open: k.open,
+                    })
+                    .collect()
+            };
             let mut a = e.parent[li];
             while a != element::NONE {
                 for k in &links[a as usize] {
@@ -814,7 +832,7 @@ pub fn gather_lists(
                     // blockers' proof holds for the ancestor's link (then for every piece of
                     // the pair) or for the leaf itself, it checks its own.
                     let bar = if k.f > 0.0 { k.se / k.f } else { 0.0 };
-                    let v = if k.partial {
+                    let v = if k.partial || partly {
                         Sight::Trace
                     } else if k.proved
                         || ctx.blockers.unoccluded_within(
@@ -838,8 +856,9 @@ pub fn gather_lists(
             // Sources as fine as they are, where their radiosity varies.
             while let Some(en) = stack.pop() {
                 let s = en.src;
-                if e.is_leaf(s) || weight(s, spread) * en.f <= descend * eps {
-                    out.push((s, en.f, en.q_bar, en.f * en.v_bar));
+                if e.is_leaf(s) || weight(s, spread) * en.open <= descend * eps {
+                    let f = en.f / exposed;
+                    out.push((s, f, en.q_bar / exposed, f * en.v_bar));
                     continue;
                 }
                 for c in e.children(s) {
@@ -881,6 +900,12 @@ pub fn gather_lists(
             g.f.push(f);
             sum += f;
             var += se * se;
+        }
+        // A partly buried leaf's factors are divided by its measured exposed fraction, whose
+        // standard error scales them all alike.
+        let x = g.leaves[k] as usize;
+        if e.exposed[x] < 1.0 {
+            var += (sum * e.exposed_se[x] / e.exposed[x]).powi(2);
         }
         g.start.push(g.src.len());
         g.row_sum.push((
@@ -1073,8 +1098,8 @@ fn finish_report<'a>(
             continue;
         }
         worst = worst.max(down[li]);
-        sum += e.area[li] * down[li];
-        area += e.area[li];
+        sum += e.visible_area(l) * down[li];
+        area += e.visible_area(l);
     }
     let scale = b_ref.max(f64::MIN_POSITIVE);
     report.max_error = worst / scale;

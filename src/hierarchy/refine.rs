@@ -74,7 +74,7 @@ impl Oracle<'_> {
         let (mut var, mut spr) = (0.0f64, 0.0f64);
         for c in 0..3 {
             var = var.max(rho[c] * bs[c] * l.df);
-            spr = spr.max(rho[c] * ds[c] * l.f);
+            spr = spr.max(rho[c] * ds[c] * l.open);
         }
         (var, spr)
     }
@@ -246,11 +246,74 @@ pub fn split_along_contacts(
 /// Rays per leaf of the buried test.
 pub const BURY_RAYS: usize = 16;
 
-/// Marks as buried each leaf of `leaves` from which all of [`BURY_RAYS`] rays (jittered
+/// Strata per side of the grid that measures a partly buried leaf's exposed fraction:
+/// `EXPOSED_RAYS²` rays, one from a jittered point of each stratum.
+pub const EXPOSED_RAYS: usize = 16;
+
+/// A leaf less exposed than this counts as buried: its visible part is under a
+/// sixteenth of the leaf (of the smallest elements, where contacts cross), and fewer than
+/// one in sixteen of any of its rays would start there.
+pub const MIN_EXPOSED: f64 = 1.0 / 16.0;
+
+/// Which of `n × n` rays from leaf `el` (a jittered point in each stratum of its
+/// parameter square when `grid`, else `n²` independent points; cosine-weighted directions)
+/// meet the back of a patch first: those points lie inside a closed solid.
+fn back_hits(
+    e: &Elements,
+    el: u32,
+    vis: &Visibility,
+    normals: &[DVec3],
+    mut rng: Pcg32,
+    n: usize,
+    grid: bool,
+) -> Vec<bool> {
+    let nr = e.normal[el as usize];
+    let (t, b) = basis(nr.as_vec3());
+    let (t, b) = (t.as_dvec3(), b.as_dvec3());
+    let inv = 1.0 / n as f64;
+    (0..n * n)
+        .map(|k| {
+            let (u, v) = if grid {
+                let (a, c) = ((k % n) as f64, (k / n) as f64);
+                ((a + rng.next_f64()) * inv, (c + rng.next_f64()) * inv)
+            } else {
+                (rng.next_f64(), rng.next_f64())
+            };
+            let (x, _) = e.point(el, u, v);
+            let d = cosine_direction(rng.next_f64(), rng.next_f64()).as_dvec3();
+            let dir = (t * d.x + b * d.y + nr * d.z).normalize();
+            match vis.first_hit(x, nr, dir) {
+                Some(h) => normals[h.patch as usize].dot(dir) > 0.0,
+                None => false,
+            }
+        })
+        .collect()
+}
+
+/// The exposed fraction from the flags of an `n × n` stratified grid (`n` even), and its
+/// standard error by collapsed strata (Cochran, *Sampling Techniques*, 3rd ed., §5A.12):
+/// strata paired along `u`, `var ≈ Σ_pairs (y_a − y_b)² / N²` with `N = n²`, `y` 1 for an
+/// exposed point.
+fn exposed_fraction(back: &[bool]) -> (f64, f64) {
+    let m = back.len() as f64;
+    let exposed = back.iter().filter(|&&b| !b).count() as f64 / m;
+    let var: f64 = back
+        .chunks_exact(2)
+        .map(|p| f64::from(u8::from(p[0] != p[1])))
+        .sum::<f64>()
+        / (m * m);
+    (exposed, var.sqrt())
+}
+
+/// Marks as buried each leaf of `leaves` from which all of [`BURY_RAYS`] rays (random
 /// points, cosine-weighted directions) meet the back of a patch: its whole surface lies
-/// inside a closed solid. A ray that escapes or meets a front side proves the leaf is
-/// surface; when some rays do and others meet a back side, the leaf is marked *partly*
-/// buried ([`Elements::partly`]). Returns the number buried and the rays cast.
+/// inside a closed solid. A ray that escapes or meets a front side proves its point is
+/// surface (from outside every solid, the first face a ray meets shows its front). When
+/// some rays do and others meet a back side, or a contact crosses the leaf, the leaf is
+/// *partly* buried ([`Elements::partly`]) and its exposed fraction
+/// ([`Elements::exposed`]) is measured with [`EXPOSED_RAYS`]² stratified rays, one point
+/// each: the share of its area that receives and emits (under [`MIN_EXPOSED`], the leaf
+/// counts as buried). Returns the number buried and the rays cast.
 pub fn bury(
     e: &mut Elements,
     leaves: &[u32],
@@ -258,35 +321,45 @@ pub fn bury(
     normals: &[DVec3],
     seed: u64,
 ) -> (usize, u64) {
-    let flags: Vec<(bool, bool)> = leaves
+    let found: Vec<((f64, f64), u64)> = leaves
         .par_iter()
         .map(|&el| {
-            let mut rng = Pcg32::keyed(seed, 0x4255_5259, u64::from(el), 0);
-            let n = e.normal[el as usize];
-            let (t, b) = basis(n.as_vec3());
-            let (t, b) = (t.as_dvec3(), b.as_dvec3());
-            let back = (0..BURY_RAYS)
-                .filter(|_| {
-                    let (x, _) = e.point(el, rng.next_f64(), rng.next_f64());
-                    let d = cosine_direction(rng.next_f64(), rng.next_f64()).as_dvec3();
-                    let dir = (t * d.x + b * d.y + n * d.z).normalize();
-                    match vis.first_hit(x, n, dir) {
-                        Some(h) => normals[h.patch as usize].dot(dir) > 0.0,
-                        None => false,
-                    }
-                })
+            let rng = Pcg32::keyed(seed, 0x4255_5259, u64::from(el), 0);
+            let back = back_hits(e, el, vis, normals, rng, 4, false)
+                .into_iter()
+                .filter(|&b| b)
                 .count();
-            (back == BURY_RAYS, back > 0 && back < BURY_RAYS)
+            let mut rays = BURY_RAYS as u64;
+            let crossed = e.partly[el as usize];
+            let exposed = if back == BURY_RAYS && !crossed {
+                (0.0, 0.0)
+            } else if back == 0 && !crossed {
+                (1.0, 0.0)
+            } else {
+                let rng = Pcg32::keyed(seed, 0x4255_5259, u64::from(el), 1);
+                let n = EXPOSED_RAYS;
+                rays += (n * n) as u64;
+                let found = exposed_fraction(&back_hits(e, el, vis, normals, rng, n, true));
+                if found.0 < MIN_EXPOSED {
+                    (0.0, 0.0)
+                } else {
+                    found
+                }
+            };
+            (exposed, rays)
         })
         .collect();
-    let mut count = 0;
-    for (&el, &(all, some)) in leaves.iter().zip(&flags) {
+    let (mut count, mut rays) = (0, 0);
+    for (&el, &((exposed, se), r)) in leaves.iter().zip(&found) {
         let i = el as usize;
-        e.buried[i] = all;
-        e.partly[i] = !all && (some || e.partly[i]);
-        count += usize::from(all);
+        e.buried[i] = exposed <= 0.0;
+        e.partly[i] = exposed > 0.0 && exposed < 1.0;
+        e.exposed[i] = exposed.max(0.0);
+        e.exposed_se[i] = se;
+        count += usize::from(e.buried[i]);
+        rays += r;
     }
-    (count, (leaves.len() * BURY_RAYS) as u64)
+    (count, rays)
 }
 
 #[cfg(test)]
@@ -335,6 +408,24 @@ mod tests {
     }
 
     #[test]
+    fn exposed_fraction_and_its_collapsed_strata_error() {
+        // All exposed, all buried: exact, no error.
+        assert_eq!(exposed_fraction(&[false; 16]), (1.0, 0.0));
+        assert_eq!(exposed_fraction(&[true; 16]), (0.0, 0.0));
+        // A boundary between pairs: the pairs agree, so no error is seen.
+        let mut half = [false; 16];
+        half[..8].fill(true);
+        assert_eq!(exposed_fraction(&half), (0.5, 0.0));
+        // A boundary through two pairs: each differing pair adds 1 / N².
+        let mut split = [false; 16];
+        split[3] = true;
+        split[5] = true;
+        let (x, se) = exposed_fraction(&split);
+        assert_eq!(x, 14.0 / 16.0);
+        assert!((se - (2.0f64).sqrt() / 16.0).abs() < 1e-15);
+    }
+
+    #[test]
     fn oracle_stops_at_tolerance_and_minimum_area() {
         let e = floor();
         let rho = vec![[0.5; 3]];
@@ -349,6 +440,7 @@ mod tests {
             partial: false,
             vis: 1.0,
             proved: false,
+            open: 0.1,
         };
         let o = Oracle {
             elements: &e,

@@ -366,7 +366,7 @@ pub fn power(e: &Elements, m: &Materials, state: &State) -> ([f64; 3], [f64; 3])
         if e.first_child[p] != NONE || e.buried[p] {
             continue;
         }
-        let a = e.area[p];
+        let a = e.visible_area(p as u32);
         for c in 0..3 {
             emitted[c] += a * m.emit[p][c];
             absorbed[c] += a * (1.0 - m.rho[p][c]) * state.h[p][c];

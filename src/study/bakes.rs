@@ -123,7 +123,8 @@ pub fn obj_faces(scene: &Scene) -> Vec<usize> {
 
 /// Area-weighted mean radiosity of each OBJ face (index: [`obj_faces`]), from patches (or
 /// leaves) `set` with values `b` and areas `areas` (for leaves, their whole areas: buried
-/// ones count with their radiosity 0, as the reference's face averages do).
+/// ones count with their radiosity 0, as the reference's face averages do, and partly
+/// buried ones with their radiosity times their exposed fraction).
 pub fn face_averages(
     set: &PatchSet,
     obj_face: &[usize],
@@ -337,12 +338,19 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
         let verts = interpolate_with(&leaves, &b, 30.0, Nodal::Linear);
         let (cpu, wall) = (cpu_seconds() - c0, t0.elapsed().as_secs_f64());
         let areas: Vec<f64> = ids.iter().map(|&l| sol.elements.area[l as usize]).collect();
+        // A partly buried leaf's radiosity is that of its exposed part; the part inside the
+        // solid counts with 0, as the buried leaves do.
+        let b_face: Vec<[f64; 3]> = ids
+            .iter()
+            .zip(&b)
+            .map(|(&l, v)| v.map(|x| x * sol.elements.exposed[l as usize]))
+            .collect();
         let (face_max, points, values) = score(
             &refs,
             &obj,
             &leaves,
             &areas,
-            &b,
+            &b_face,
             &verts,
             faces,
             patches.diagonal,
