@@ -330,6 +330,29 @@ pub fn visible_fraction(ctx: &Context, r: u32, s: u32, open: Option<f64>) -> See
 /// [`visible_fraction`] with `n × n` rays instead of [`Context::rays`]² (a different
 /// stream for each `n`).
 pub fn visible_fraction_n(ctx: &Context, r: u32, s: u32, n: usize, open: Option<f64>) -> Seen {
+    let tag = if n == ctx.rays { 0 } else { n as u64 };
+    visible_fraction_keyed(ctx, r, s, n, tag, open)
+}
+
+/// Stream tag of [`visible_fraction_again`].
+const AGAIN: u64 = 1 << 40;
+
+/// [`visible_fraction`] with rays independent of those that evaluated the link `r ← s`
+/// ([`evaluate`]): a fresh estimate for a link whose first estimate took part in deciding
+/// that it is kept.
+pub fn visible_fraction_again(ctx: &Context, r: u32, s: u32, open: Option<f64>) -> Seen {
+    visible_fraction_keyed(ctx, r, s, ctx.rays, AGAIN, open)
+}
+
+/// [`visible_fraction`] with `n × n` rays from the stream tagged `tag`.
+fn visible_fraction_keyed(
+    ctx: &Context,
+    r: u32,
+    s: u32,
+    n: usize,
+    tag: u64,
+    open: Option<f64>,
+) -> Seen {
     let e = ctx.elements;
     let (nr, ns) = (e.normal[r as usize], e.normal[s as usize]);
     let n = n.max(1);
@@ -337,7 +360,7 @@ pub fn visible_fraction_n(ctx: &Context, r: u32, s: u32, n: usize, open: Option<
         ctx.seed,
         0x4852_4c4e_4b00_0000 | u64::from(r),
         u64::from(s),
-        if n == ctx.rays { 0 } else { n as u64 },
+        tag,
     );
     let cells = n * n;
     // Source strata in random order (Fisher–Yates).

@@ -672,6 +672,8 @@ enum Sight {
     Trace,
     /// Traced from the leaf with this many rays per side (pieces of a split source).
     TraceWith(usize),
+    /// Traced again from the leaf, with rays independent of its link's.
+    Again,
 }
 
 /// One entry of a leaf's gather list while it is built.
@@ -769,6 +771,11 @@ pub fn gather_lists(
                 let (v, v_bar, traced) = match v {
                     Sight::Given(v, bar) => (v, bar, false),
                     Sight::Trace => trace(cost),
+                    Sight::Again => {
+                        let seen = link::visible_fraction_again(ctx, l, src, Some(f));
+                        cost.rays += seen.rays;
+                        (seen.v, relative(seen.v, n), true)
+                    }
                     Sight::TraceWith(m) => {
                         let seen = link::visible_fraction_n(ctx, l, src, m, Some(f));
                         cost.rays += seen.rays;
@@ -807,17 +814,27 @@ pub fn gather_lists(
                     .filter_map(|k| piece(k.src, Sight::Trace, &mut cost))
                     .collect()
             } else {
+                // The leaf's own links as they are where they were proved unoccluded; traced
+                // again where rays decided them (whether a link was partly visible, and so
+                // refined further, hung on those rays: kept, their estimate would be biased
+                // low for partly visible links and high for those all of whose rays were
+                // free).
                 links[li]
                     .iter()
-                    .filter(|k| k.f > 0.0)
-                    .map(|k| Entry {
-                        src: k.src,
-                        f: k.f,
-                        v: k.vis,
-                        v_bar: k.se / k.f,
-                        q_bar: k.err,
-                        traced: k.partial,
-                        open: k.open,
+                    .filter_map(|k| {
+                        if k.proved {
+                            Some(Entry {
+                                src: k.src,
+                                f: k.f,
+                                v: k.vis,
+                                v_bar: 0.0,
+                                q_bar: k.err,
+                                traced: false,
+                                open: k.open,
+                            })
+                        } else {
+                            piece(k.src, Sight::Again, &mut cost)
+                        }
                     })
                     .collect()
             };
