@@ -179,9 +179,17 @@ fn shadows_and_contacts_refine_and_refinement_stops_at_the_tolerance() {
         sum <= 1.0 + bar.allowance(5.0),
         "largest leaf factor sum {sum} ± {bar}"
     );
-    // The bar stays small (a partly buried leaf's includes the error of its measured
-    // exposed fraction, by which its factors are divided).
-    assert!(bar.magnitude() < 0.05, "bar {bar}");
+    // The largest sum is often the noisiest leaf's (a partly buried leaf's bar includes the
+    // error of the exposed fraction its factors are divided by), so the bars are checked
+    // over all leaves: with calibrated bars and no bias, a one-sided 3-bar excess has
+    // probability 0.13%; at most 0.2% of the leaves may show it.
+    assert!(bar.magnitude() < 0.1, "bar {bar}");
+    let over = sol.report.rows_over_one;
+    assert!(
+        over * 500 <= sol.report.leaves,
+        "{over} of {} leaves over 1 beyond 3 bars",
+        sol.report.leaves
+    );
     // Floor leaves (normal +y, y = 0) within 3 mm of the short block's edge from
     // (130, 65) to (290, 114), outside the block, are at the minimum size.
     let (a, b) = (
