@@ -258,6 +258,8 @@ impl AreaMc {
         scratch: &mut Buffers,
     ) {
         let p = ctx.patches;
+        // The possible blockers of a's near pairs, found at the first of them.
+        let mut blockers = None;
         for b in a + 1..p.len() {
             // The corners of b serve both culling tests and b's sampler.
             let (pb, kb) = p.corner_points(b);
@@ -265,9 +267,9 @@ impl AreaMc {
                 continue;
             }
             let got = if near(p, (a, pa), (b, &pb[..kb])) {
-                let semi = &mut scratch.semi;
-                self.near_estimator()
-                    .single_pair(ctx, (a, b), row, tracer, semi)
+                let semi = self.near_estimator();
+                let blockers = blockers.get_or_insert_with(|| semi.blockers(p, a));
+                semi.single_pair(ctx, (a, b), blockers, row, tracer, &mut scratch.semi)
             } else {
                 let on_b = PatchSampler::of_corners(pb, kb);
                 let (ons, rays) = ((on_a, &on_b), &mut row.rays);
@@ -298,9 +300,9 @@ impl AreaMc {
         let ((pa, ka), (pb, kb)) = (p.corner_points(a), p.corner_points(b));
         if near(p, (a, &pa[..ka]), (b, &pb[..kb])) {
             let mut row = Row::default();
-            let got =
-                self.near_estimator()
-                    .single_pair(ctx, (a, b), &mut row, tracer, &mut scratch.semi);
+            let semi = self.near_estimator();
+            let blockers = semi.blockers(p, a);
+            let got = semi.single_pair(ctx, (a, b), &blockers, &mut row, tracer, &mut scratch.semi);
             *rays += row.rays;
             return got;
         }
