@@ -287,9 +287,11 @@ impl EmbreeScene {
     /// `rtcOccluded16` over up to 16 segment rays given as structure of arrays: ray k
     /// starts at `(org[0][k], org[1][k], org[2][k])`, has direction `dir[.][k]` and runs
     /// over `[0, tfar]`. The slices are copied into the packet whole (no transposition);
-    /// `out[k]` is set to true when ray k is blocked.
+    /// `out[k]` is set to true when nothing blocks ray k (written once, as the answer: a
+    /// second pass inverting a blocked flag read the 16 bytes back as one load right after
+    /// their 16 one-byte stores, which the store buffer cannot forward).
     #[inline(always)]
-    pub fn occluded16_soa(&self, org: [&[f32]; 3], dir: [&[f32]; 3], tfar: f32, out: &mut [bool]) {
+    pub fn free16_soa(&self, org: [&[f32]; 3], dir: [&[f32]; 3], tfar: f32, out: &mut [bool]) {
         let n = org[0].len();
         debug_assert!(n <= 16 && out.len() >= n);
         let mut packet = sys::RTCRay16::default();
@@ -300,8 +302,9 @@ impl EmbreeScene {
         // SAFETY: as in `occluded16_with`: committed scene, 64-byte aligned packet and
         // mask, lanes with valid = 0 ignored.
         unsafe { sys::rtcOccluded16(valid.0.as_ptr(), self.scene, &mut packet, null_mut()) };
+        // Embree sets tfar to -inf on an occluded ray and leaves the others' (`tfar > 0`).
         for (o, tfar) in out.iter_mut().zip(packet.tfar).take(n) {
-            *o = tfar < 0.0;
+            *o = tfar >= 0.0;
         }
     }
 

@@ -377,10 +377,7 @@ impl Visibility {
                 for ((org, dir), out) in segs.rays.packets16().zip(out[..n].chunks_mut(16)) {
                     let len = org[0].len();
                     if len >= PACKET_MIN {
-                        self.scene.occluded16_soa(org, dir, segs.tfar, out);
-                        for v in out.iter_mut() {
-                            *v = !*v;
-                        }
+                        self.scene.free16_soa(org, dir, segs.tfar, out);
                     } else {
                         for (k, v) in out.iter_mut().enumerate().take(len) {
                             let o = Vec3::new(org[0][k], org[1][k], org[2][k]);
