@@ -236,7 +236,9 @@ impl SemiAnalytic {
     }
 
     /// True when no other patch can block any segment between patches `i` and `j` (see
-    /// the module docs). `others` are the blockers with a corner strictly in front of i.
+    /// the module docs). `others` are the candidate blockers: the blockers with a corner
+    /// strictly in front of i ([`blockers_of`]), or all of them (those not in front of i are
+    /// then skipped here, tested only where the other tests leave them as blockers).
     fn unoccluded(
         &self,
         p: &PatchSet,
@@ -262,17 +264,19 @@ impl SemiAnalytic {
             // Both patches wholly on one side of k's plane: segments between them cannot
             // cross that plane, so k cannot block.
             let (ki, kj) = (plane_range(p, k, i), plane_range(p, k, j));
-            (ki.0 >= -tol && kj.0 >= -tol) || (ki.1 <= tol && kj.1 <= tol)
+            (ki.0 >= -tol && kj.0 >= -tol)
+                || (ki.1 <= tol && kj.1 <= tol)
+                || k == i
+                || plane_range(p, i, k).1 <= tol
         })
     }
 }
 
-/// The possible blockers of the pairs of one patch `a`, with the scene's data they came
-/// from ([`SemiAnalytic::blockers`]).
+/// The scene's possible blockers, for the pairs of one patch `a` handed over one by one
+/// ([`SemiAnalytic::blockers`]).
 pub(crate) struct Blockers {
     a: usize,
     prep: Arc<Prepared>,
-    others: Vec<u32>,
 }
 
 /// Possible blockers of anything leaving `i`: not hull faces, a corner in front of i.
@@ -427,8 +431,8 @@ impl SemiAnalytic {
 
     /// The entry `F_ij` of the unordered pair `(i, j)`, `i < j` (`F_ji` follows by
     /// reciprocity), or `None` when the pair is culled or sees nothing; `row.rays` counts
-    /// the rays. `others` are the possible blockers with a corner strictly in front of i
-    /// ([`blockers_of`]); `own` caches patch i's Gauss nodes.
+    /// the rays. `others` are the candidate blockers of [`SemiAnalytic::unoccluded`];
+    /// `own` caches patch i's Gauss nodes.
     #[allow(clippy::too_many_arguments)]
     fn pair_entry(
         &self,
@@ -467,12 +471,16 @@ impl SemiAnalytic {
         })
     }
 
-    /// The possible blockers of the pairs `(a, b > a)` ([`blockers_of`]), for
-    /// [`SemiAnalytic::single_pair`]: found once for all of a's pairs.
+    /// The possible blockers of the pairs `(a, b > a)`, for [`SemiAnalytic::single_pair`]:
+    /// the scene's, looked up once for all of a's pairs. They are not narrowed to those in
+    /// front of a ([`blockers_of`], a scan of every blocker): a row hands over few pairs,
+    /// and [`SemiAnalytic::unoccluded`] tests that only for the blockers its cheaper tests
+    /// leave.
     pub(crate) fn blockers(&self, p: &PatchSet, a: usize) -> Blockers {
-        let prep = self.prepared(p);
-        let others = blockers_of(p, &prep, a);
-        Blockers { a, prep, others }
+        Blockers {
+            a,
+            prep: self.prepared(p),
+        }
     }
 
     /// The entry `F_ab` of one unordered pair `(a, b)`, `a < b`, computed on its own (for
@@ -492,7 +500,7 @@ impl SemiAnalytic {
         self.pair_entry(
             ctx,
             (a, b),
-            (&blockers.others, &blockers.prep),
+            (&blockers.prep.blockers, &blockers.prep),
             &mut None,
             row,
             tracer,
