@@ -32,7 +32,7 @@ use crate::error::Result;
 use crate::mesh::PatchSet;
 
 pub use embree::flush_denormals;
-pub(crate) use embree::{EmbreeScene, HitPacket16};
+pub(crate) use embree::{EmbreeScene, HitPacket16, SegmentPacket16};
 
 /// Relative offset of ray ends from their surfaces, as a fraction of the scene diagonal.
 pub const OFFSET_REL: f32 = 1e-5;
@@ -370,6 +370,7 @@ impl Visibility {
     #[inline]
     pub fn segments_visible_soa(&self, segs: &Segments, out: &mut [bool]) {
         let n = segs.len();
+        let mut packet = SegmentPacket16::new();
         // The packet copies and the answers' pass, at the sampling passes' width.
         crate::simd::with_widest(
             #[inline(always)]
@@ -377,7 +378,7 @@ impl Visibility {
                 for ((org, dir), out) in segs.rays.packets16().zip(out[..n].chunks_mut(16)) {
                     let len = org[0].len();
                     if len >= PACKET_MIN {
-                        self.scene.free16_soa(org, dir, segs.tfar, out);
+                        self.scene.free16_soa(&mut packet, org, dir, segs.tfar, out);
                     } else {
                         for (k, v) in out.iter_mut().enumerate().take(len) {
                             let o = Vec3::new(org[0][k], org[1][k], org[2][k]);
