@@ -398,8 +398,8 @@ pub(crate) struct Scratch {
 impl SemiAnalytic {
     /// Row `i`, entries `j > i` ([`Estimator::upper_only`]), with `tracer` answering
     /// visibility for batches of segment rays
-    /// ([`crate::visibility::Visibility::segment_ray`], one batch per node); the rays
-    /// asked for do not depend on the answers, so a recorder sees the exact ray set.
+    /// ([`crate::visibility::Visibility::segment_ray`], one batch per sampled pair); the
+    /// rays asked for do not depend on the answers, so a recorder sees the exact ray set.
     pub fn row_with(
         &self,
         ctx: &Context,

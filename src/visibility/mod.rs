@@ -223,9 +223,9 @@ pub struct Visibility {
 /// Fewest segment rays traced as one `rtcOccluded16` packet; shorter runs go one
 /// `rtcOccluded1` each. A coherent full packet ran at 1.7 to 2.2 times the single-ray rate
 /// (`docs/PERFORMANCE.md`, section 2), so a packet costs about 8 single rays: the
-/// semi-analytic estimator's batches of 4 rays per node ran its stage at about 0.23 of the
-/// raw loop as packets against 0.25-0.26 as single rays (400-patch Cornell box, shared
-/// machine).
+/// semi-analytic estimator's batches of 4 rays per node (before it traced a pair's nodes
+/// as one batch) ran its stage at about 0.23 of the raw loop as packets against 0.25-0.26
+/// as single rays (400-patch Cornell box, shared machine).
 pub const PACKET_MIN: usize = 8;
 
 /// Bit of [`Visibility`]'s `tri_front` entries: winding normal along the patch normal.
