@@ -102,13 +102,53 @@ pub fn near(
     (a, pa): (usize, &[DVec3]),
     (b, pb): (usize, &[DVec3]),
 ) -> bool {
-    let reach = NEAR * p.area[a].max(p.area[b]).sqrt();
-    let radius = |c: DVec3, q: &[DVec3]| q.iter().map(|&v| (v - c).length()).fold(0.0, f64::max);
-    let (ca, cb) = (p.centroid[a], p.centroid[b]);
-    if (ca - cb).length() - radius(ca, pa) - radius(cb, pb) >= reach {
-        return false;
+    Near::of(p, a, pa).to(p, b, pb)
+}
+
+/// Patch a's side of the [`near`] test, made once for all of a's pairs.
+struct Near<'a> {
+    corners: &'a [DVec3],
+    centroid: DVec3,
+    /// `√A_a`.
+    side: f64,
+    /// Largest distance of a corner from the centroid.
+    radius: f64,
+}
+
+impl<'a> Near<'a> {
+    fn of(p: &crate::mesh::PatchSet, a: usize, corners: &'a [DVec3]) -> Near<'a> {
+        let centroid = p.centroid[a];
+        Near {
+            corners,
+            centroid,
+            side: p.area[a].sqrt(),
+            radius: radius(centroid, corners),
+        }
     }
-    super::exact::polygon_distance(pa, pb) < reach
+
+    /// [`near`] of a and b: first the two patches' bounding balls, then the distance
+    /// between the polygons. (`NEAR √A` of the larger patch is `NEAR` times the larger
+    /// `√A`: the square root is monotonic and correctly rounded, so the two agree to the
+    /// bit, as do the radii below.)
+    #[inline]
+    fn to(&self, p: &crate::mesh::PatchSet, b: usize, pb: &[DVec3]) -> bool {
+        let reach = NEAR * self.side.max(p.area[b].sqrt());
+        let cb = p.centroid[b];
+        if (self.centroid - cb).length() - self.radius - radius(cb, pb) >= reach {
+            return false;
+        }
+        super::exact::polygon_distance(self.corners, pb) < reach
+    }
+}
+
+/// Largest distance from `c` to a point of `q`: the square root of the largest squared
+/// distance, one root for all.
+#[inline]
+fn radius(c: DVec3, q: &[DVec3]) -> f64 {
+    q.iter()
+        .map(|&v| (v - c).length_squared())
+        .fold(0.0, f64::max)
+        .sqrt()
 }
 
 impl AreaMc {
@@ -258,16 +298,19 @@ impl AreaMc {
         scratch: &mut Buffers,
     ) {
         let p = ctx.patches;
+        let near_a = Near::of(p, a, pa);
+        // The possible blockers of a's near pairs, looked up at the first of them.
+        let mut blockers = None;
         for b in a + 1..p.len() {
             // The corners of b serve both culling tests and b's sampler.
             let (pb, kb) = p.corner_points(b);
             if behind_plane(ctx, a, &pb[..kb]) || behind_plane(ctx, b, pa) {
                 continue;
             }
-            let got = if near(p, (a, pa), (b, &pb[..kb])) {
-                let semi = &mut scratch.semi;
-                self.near_estimator()
-                    .single_pair(ctx, (a, b), row, tracer, semi)
+            let got = if near_a.to(p, b, &pb[..kb]) {
+                let semi = self.near_estimator();
+                let blockers = blockers.get_or_insert_with(|| semi.blockers(p, a));
+                semi.single_pair(ctx, (a, b), blockers, row, tracer, &mut scratch.semi)
             } else {
                 let on_b = PatchSampler::of_corners(pb, kb);
                 let (ons, rays) = ((on_a, &on_b), &mut row.rays);
@@ -298,9 +341,9 @@ impl AreaMc {
         let ((pa, ka), (pb, kb)) = (p.corner_points(a), p.corner_points(b));
         if near(p, (a, &pa[..ka]), (b, &pb[..kb])) {
             let mut row = Row::default();
-            let got =
-                self.near_estimator()
-                    .single_pair(ctx, (a, b), &mut row, tracer, &mut scratch.semi);
+            let semi = self.near_estimator();
+            let blockers = semi.blockers(p, a);
+            let got = semi.single_pair(ctx, (a, b), &blockers, &mut row, tracer, &mut scratch.semi);
             *rays += row.rays;
             return got;
         }

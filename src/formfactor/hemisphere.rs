@@ -22,7 +22,7 @@
 //! replicate go out in Z-order of their direction cells, so that each packet of 16 is
 //! coherent, and are traced 16 at a time (`rtcIntersect16`); the side of a patch a ray
 //! meets comes from the hit triangle's normal. Hits are tallied per (patch, replicate) in a
-//! per-thread array kept zero between rows (a patch's replicates side by side), and the
+//! per-worker array kept zero between rows (a patch's replicates side by side), and the
 //! patches hit are found by a scan of the tallies (small scenes) or marked in a bit set as
 //! they come (large ones, whose rows then cost one bit per patch they do not hit).
 //!
@@ -466,7 +466,7 @@ impl Scratch {
                 })
             };
             let mut order: Vec<usize> = (0..st * st).collect();
-            order.sort_by_key(|&c| morton(c));
+            order.sort_by_cached_key(|&c| morton(c));
             let [z0, z1] = &mut self.zc;
             z0.clear();
             z1.clear();

@@ -236,7 +236,9 @@ impl SemiAnalytic {
     }
 
     /// True when no other patch can block any segment between patches `i` and `j` (see
-    /// the module docs). `others` are the blockers with a corner strictly in front of i.
+    /// the module docs). `others` are the candidate blockers: the blockers with a corner
+    /// strictly in front of i ([`blockers_of`]), or all of them (those not in front of i are
+    /// then skipped here, tested only where the other tests leave them as blockers).
     fn unoccluded(
         &self,
         p: &PatchSet,
@@ -262,9 +264,19 @@ impl SemiAnalytic {
             // Both patches wholly on one side of k's plane: segments between them cannot
             // cross that plane, so k cannot block.
             let (ki, kj) = (plane_range(p, k, i), plane_range(p, k, j));
-            (ki.0 >= -tol && kj.0 >= -tol) || (ki.1 <= tol && kj.1 <= tol)
+            (ki.0 >= -tol && kj.0 >= -tol)
+                || (ki.1 <= tol && kj.1 <= tol)
+                || k == i
+                || plane_range(p, i, k).1 <= tol
         })
     }
+}
+
+/// The scene's possible blockers, for the pairs of one patch `a` handed over one by one
+/// ([`SemiAnalytic::blockers`]).
+pub(crate) struct Blockers {
+    a: usize,
+    prep: Arc<Prepared>,
 }
 
 /// Possible blockers of anything leaving `i`: not hull faces, a corner in front of i.
@@ -372,7 +384,10 @@ impl SemiAnalytic {
 pub(crate) struct Scratch {
     strata: Vec<(f64, f64)>,
     ys: Vec<(f64, f64)>,
-    /// One node's segment rays, as structure of arrays.
+    /// Every node of a pair: its replicate, `F(x → P_r)` and the end of its rays.
+    nodes: Vec<(u32, f64, usize)>,
+    /// The pair's segment rays (node after node), as structure of arrays, and their
+    /// kernels.
     org: [Vec<f32>; 3],
     dir: [Vec<f32>; 3],
     gs: Vec<f64>,
@@ -383,8 +398,8 @@ pub(crate) struct Scratch {
 impl SemiAnalytic {
     /// Row `i`, entries `j > i` ([`Estimator::upper_only`]), with `tracer` answering
     /// visibility for batches of segment rays
-    /// ([`crate::visibility::Visibility::segment_ray`], one batch per node); the rays
-    /// asked for do not depend on the answers, so a recorder sees the exact ray set.
+    /// ([`crate::visibility::Visibility::segment_ray`], one batch per sampled pair); the
+    /// rays asked for do not depend on the answers, so a recorder sees the exact ray set.
     pub fn row_with(
         &self,
         ctx: &Context,
@@ -416,8 +431,8 @@ impl SemiAnalytic {
 
     /// The entry `F_ij` of the unordered pair `(i, j)`, `i < j` (`F_ji` follows by
     /// reciprocity), or `None` when the pair is culled or sees nothing; `row.rays` counts
-    /// the rays. `others` are the possible blockers with a corner strictly in front of i
-    /// ([`blockers_of`]); `own` caches patch i's Gauss nodes.
+    /// the rays. `others` are the candidate blockers of [`SemiAnalytic::unoccluded`];
+    /// `own` caches patch i's Gauss nodes.
     #[allow(clippy::too_many_arguments)]
     fn pair_entry(
         &self,
@@ -456,23 +471,36 @@ impl SemiAnalytic {
         })
     }
 
+    /// The possible blockers of the pairs `(a, b > a)`, for [`SemiAnalytic::single_pair`]:
+    /// the scene's, looked up once for all of a's pairs. They are not narrowed to those in
+    /// front of a ([`blockers_of`], a scan of every blocker): a row hands over few pairs,
+    /// and [`SemiAnalytic::unoccluded`] tests that only for the blockers its cheaper tests
+    /// leave.
+    pub(crate) fn blockers(&self, p: &PatchSet, a: usize) -> Blockers {
+        Blockers {
+            a,
+            prep: self.prepared(p),
+        }
+    }
+
     /// The entry `F_ab` of one unordered pair `(a, b)`, `a < b`, computed on its own (for
     /// estimators that hand this estimator the pairs they cannot sample well, such as
-    /// patches that touch: [`super::area`]); as [`SemiAnalytic::pair_entry`].
+    /// patches that touch: [`super::area`]); as [`SemiAnalytic::pair_entry`]. `blockers`
+    /// are a's ([`SemiAnalytic::blockers`]).
     pub(crate) fn single_pair(
         &self,
         ctx: &Context,
         (a, b): (usize, usize),
+        blockers: &Blockers,
         row: &mut Row,
         tracer: &dyn Tracer,
         scratch: &mut Scratch,
     ) -> Option<Entry> {
-        let prep = self.prepared(ctx.patches);
-        let others = blockers_of(ctx.patches, &prep, a);
+        debug_assert_eq!(blockers.a, a);
         self.pair_entry(
             ctx,
             (a, b),
-            (&others, &prep),
+            (&blockers.prep.blockers, &blockers.prep),
             &mut None,
             row,
             tracer,
@@ -529,6 +557,12 @@ impl SemiAnalytic {
     }
 
     /// Sampled estimate of `∫_{A_e} F(x → P_r) v(x) dA_x` and its standard error.
+    ///
+    /// The nodes of every replicate are drawn first, with their segment rays where
+    /// something may block (the rays do not depend on the answers), and traced as one
+    /// batch: the pair's rays go to Embree in full packets of 16 (rays from nearby nodes
+    /// to one receiver are coherent), not four at a time. The sums then run node by node
+    /// in the order of the draws.
     #[allow(clippy::too_many_arguments)]
     fn sampled_pair(
         &self,
@@ -551,29 +585,26 @@ impl SemiAnalytic {
             centroid: p.centroid[r],
         };
         let n_x = n_e.normalize();
-        let on_r = p.sampler(r);
+        let (on_e, on_r) = (p.sampler(e), p.sampler(r));
         let w = p.area[e] / (m * m) as f64;
         let area_r = p.area[r];
-        s.means.clear();
-        let mut any_free = false;
+        // Every node of every replicate: its factor `F(x → P_r)` and the end of its rays.
+        s.nodes.clear();
+        s.org.iter_mut().chain(&mut s.dir).for_each(Vec::clear);
+        s.gs.clear();
+        let per_node = self.vis_rays.max(1).pow(2);
         for rep in 0..reps {
             let mut rng = Pcg32::keyed(ctx.seed, i as u64, j as u64, rep as u64);
             jittered(&mut rng, m, &mut s.strata);
-            let mut sum = 0.0;
             for k in 0..s.strata.len() {
                 let (u, v) = s.strata[k];
-                let xf = p.sample_point(e, u, v);
+                let xf = on_e.point(u, v);
                 let f = exact::point_factor(xf, n_x, &recv);
                 if f <= 0.0 {
                     continue;
                 }
-                // `F(x → P_r) v(x)`: exact when nothing can block.
-                let seen = if free {
-                    f
-                } else {
+                if !free {
                     jittered(&mut rng, self.vis_rays.max(1), &mut s.ys);
-                    s.org.iter_mut().chain(&mut s.dir).for_each(Vec::clear);
-                    s.gs.clear();
                     for &(u, v) in &s.ys {
                         let y = on_r.point(u, v);
                         if let Some(g) = kernel(xf, n_e, y, n_r) {
@@ -585,40 +616,51 @@ impl SemiAnalytic {
                             s.gs.push(g);
                         }
                     }
-                    let k = s.gs.len();
-                    row.rays += k as u64;
-                    s.seen.clear();
-                    s.seen.resize(k, false);
-                    let (o, d) = (&s.org, &s.dir);
-                    let segs = Segments {
-                        rays: Rays {
-                            org: [&o[0], &o[1], &o[2]],
-                            dir: [&d[0], &d[1], &d[2]],
-                        },
-                        tfar: SEGMENT_TFAR,
-                    };
-                    tracer.segments_visible(&segs, &mut s.seen);
-                    any_free |= s.seen.iter().any(|&v| v);
-                    // What the blocked rays hide, `∫ G (1 - V) dA_y`, estimated from
-                    // uniform points (density 1/A_r); every drawn point counts, those
-                    // with G = 0 as 0.
-                    let hidden: f64 =
-                        s.gs.iter()
-                            .zip(&s.seen)
-                            .filter(|&(_, &seen)| !seen)
-                            .map(|(&g, _)| g)
-                            .sum();
-                    f - area_r * hidden / s.ys.len() as f64
-                };
-                sum += w * seen;
+                }
+                s.nodes.push((rep as u32, f, s.gs.len()));
             }
-            s.means.push(sum);
         }
-        if !free && !any_free {
+        let rays = s.gs.len();
+        row.rays += rays as u64;
+        s.seen.clear();
+        s.seen.resize(rays, false);
+        if rays > 0 {
+            let (o, d) = (&s.org, &s.dir);
+            let segs = Segments {
+                rays: Rays {
+                    org: [&o[0], &o[1], &o[2]],
+                    dir: [&d[0], &d[1], &d[2]],
+                },
+                tfar: SEGMENT_TFAR,
+            };
+            tracer.segments_visible(&segs, &mut s.seen);
+        }
+        if !free && !s.seen.iter().any(|&v| v) {
             // Every ray blocked: the pair is taken as hidden, as the blocked rays say (the
             // control variate would leave the noise of its own estimate of the unoccluded
             // factor: light through a closed wall, or a negative factor).
             return (0.0, 0.0);
+        }
+        s.means.clear();
+        s.means.resize(reps, 0.0);
+        let mut lo = 0;
+        for &(rep, f, hi) in &s.nodes {
+            // `F(x → P_r) v(x)`: exact when nothing can block.
+            let seen = if free {
+                f
+            } else {
+                // What the blocked rays hide, `∫ G (1 - V) dA_y`, estimated from uniform
+                // points (density 1/A_r); every drawn point counts, those with G = 0 as 0.
+                let hidden: f64 = s.gs[lo..hi]
+                    .iter()
+                    .zip(&s.seen[lo..hi])
+                    .filter(|&(_, &seen)| !seen)
+                    .map(|(&g, _)| g)
+                    .sum();
+                f - area_r * hidden / per_node as f64
+            };
+            s.means[rep as usize] += w * seen;
+            lo = hi;
         }
         let avg = s.means.iter().sum::<f64>() / reps as f64;
         let var = s.means.iter().map(|v| (v - avg).powi(2)).sum::<f64>() / (reps - 1) as f64;

@@ -139,6 +139,24 @@ impl Default for HitPacket16 {
     }
 }
 
+/// A reusable `RTCRay16` for [`EmbreeScene::free16_soa`]: made once per batch of
+/// packets (a fresh 768-byte packet was filled for every 16 rays).
+pub struct SegmentPacket16(sys::RTCRay16);
+
+impl SegmentPacket16 {
+    /// A fresh packet (`RTCRay16::default()`: `tnear = 0`, `time = 0`, every mask bit,
+    /// `id = flags = 0`, fields no occlusion query changes).
+    pub fn new() -> SegmentPacket16 {
+        SegmentPacket16(sys::RTCRay16::default())
+    }
+}
+
+impl Default for SegmentPacket16 {
+    fn default() -> Self {
+        SegmentPacket16::new()
+    }
+}
+
 impl EmbreeScene {
     /// Builds and commits a scene from triangles (indices into `vertices`).
     pub fn new(vertices: &[Vec3], triangles: &[[u32; 3]]) -> Result<Self, Error> {
@@ -287,21 +305,37 @@ impl EmbreeScene {
     /// `rtcOccluded16` over up to 16 segment rays given as structure of arrays: ray k
     /// starts at `(org[0][k], org[1][k], org[2][k])`, has direction `dir[.][k]` and runs
     /// over `[0, tfar]`. The slices are copied into the packet whole (no transposition);
-    /// `out[k]` is set to true when ray k is blocked.
+    /// `out[k]` is set to true when nothing blocks ray k (written once, as the answer: a
+    /// second pass inverting a blocked flag read the 16 bytes back as one load right after
+    /// their 16 one-byte stores, which the store buffer cannot forward).
+    /// The packet `p` is reused: a full one has every per-ray field it reads written here
+    /// (origins, directions, `tfar`; occlusion changes nothing else), and a partial one is
+    /// made fresh first, so every query sees the packet a fresh one would be.
     #[inline(always)]
-    pub fn occluded16_soa(&self, org: [&[f32]; 3], dir: [&[f32]; 3], tfar: f32, out: &mut [bool]) {
+    pub fn free16_soa(
+        &self,
+        p: &mut SegmentPacket16,
+        org: [&[f32]; 3],
+        dir: [&[f32]; 3],
+        tfar: f32,
+        out: &mut [bool],
+    ) {
         let n = org[0].len();
         debug_assert!(n <= 16 && out.len() >= n);
-        let mut packet = sys::RTCRay16::default();
+        if n < 16 {
+            *p = SegmentPacket16::new();
+        }
+        let packet = &mut p.0;
         let mut valid = Valid16([0i32; 16]);
         valid.0[..n].fill(-1);
-        load_lanes(&mut packet, org, dir);
+        load_lanes(packet, org, dir);
         packet.tfar[..n].fill(tfar);
         // SAFETY: as in `occluded16_with`: committed scene, 64-byte aligned packet and
         // mask, lanes with valid = 0 ignored.
-        unsafe { sys::rtcOccluded16(valid.0.as_ptr(), self.scene, &mut packet, null_mut()) };
+        unsafe { sys::rtcOccluded16(valid.0.as_ptr(), self.scene, packet, null_mut()) };
+        // Embree sets tfar to -inf on an occluded ray and leaves the others' (`tfar > 0`).
         for (o, tfar) in out.iter_mut().zip(packet.tfar).take(n) {
-            *o = tfar < 0.0;
+            *o = tfar >= 0.0;
         }
     }
 

@@ -32,7 +32,7 @@ use crate::error::Result;
 use crate::mesh::PatchSet;
 
 pub use embree::flush_denormals;
-pub(crate) use embree::{EmbreeScene, HitPacket16};
+pub(crate) use embree::{EmbreeScene, HitPacket16, SegmentPacket16};
 
 /// Relative offset of ray ends from their surfaces, as a fraction of the scene diagonal.
 pub const OFFSET_REL: f32 = 1e-5;
@@ -223,9 +223,9 @@ pub struct Visibility {
 /// Fewest segment rays traced as one `rtcOccluded16` packet; shorter runs go one
 /// `rtcOccluded1` each. A coherent full packet ran at 1.7 to 2.2 times the single-ray rate
 /// (`docs/PERFORMANCE.md`, section 2), so a packet costs about 8 single rays: the
-/// semi-analytic estimator's batches of 4 rays per node ran its stage at about 0.23 of the
-/// raw loop as packets against 0.25-0.26 as single rays (400-patch Cornell box, shared
-/// machine).
+/// semi-analytic estimator's batches of 4 rays per node (before it traced a pair's nodes
+/// as one batch) ran its stage at about 0.23 of the raw loop as packets against 0.25-0.26
+/// as single rays (400-patch Cornell box, shared machine).
 pub const PACKET_MIN: usize = 8;
 
 /// Bit of [`Visibility`]'s `tri_front` entries: winding normal along the patch normal.
@@ -370,6 +370,7 @@ impl Visibility {
     #[inline]
     pub fn segments_visible_soa(&self, segs: &Segments, out: &mut [bool]) {
         let n = segs.len();
+        let mut packet = SegmentPacket16::new();
         // The packet copies and the answers' pass, at the sampling passes' width.
         crate::simd::with_widest(
             #[inline(always)]
@@ -377,10 +378,7 @@ impl Visibility {
                 for ((org, dir), out) in segs.rays.packets16().zip(out[..n].chunks_mut(16)) {
                     let len = org[0].len();
                     if len >= PACKET_MIN {
-                        self.scene.occluded16_soa(org, dir, segs.tfar, out);
-                        for v in out.iter_mut() {
-                            *v = !*v;
-                        }
+                        self.scene.free16_soa(&mut packet, org, dir, segs.tfar, out);
                     } else {
                         for (k, v) in out.iter_mut().enumerate().take(len) {
                             let o = Vec3::new(org[0][k], org[1][k], org[2][k]);
