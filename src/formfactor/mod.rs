@@ -20,7 +20,6 @@ pub mod semi;
 pub mod shard;
 
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Mutex;
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -186,40 +185,12 @@ pub fn compute(ctx: &Context, est: &dyn Estimator, progress: &(dyn Fn(u64) + Syn
     compute_timed(ctx, est, progress).0
 }
 
-/// The row driver's buffers, one [`Row`] and one [`Scratch`] per worker thread of the
-/// current rayon pool, kept for every row a worker computes in one [`compute`] (rayon
-/// splits a range into many jobs; buffers made per job were sized, and the hemisphere's
-/// cell order computed, again in each: 21 times per 400-row stage with two threads).
-struct Workers(Vec<Mutex<(Row, Scratch)>>);
-
-impl Workers {
-    /// Buffers for each worker of the current rayon pool.
-    fn new() -> Workers {
-        Workers(
-            (0..rayon::current_num_threads())
-                .map(|_| Mutex::default())
-                .collect(),
-        )
-    }
-
-    /// Runs `f` with the calling worker's buffers (fresh ones if they are in use: a worker
-    /// that is not the pool's, or a row that waits on nested parallel work).
-    fn with<R>(&self, f: impl FnOnce(&mut (Row, Scratch)) -> R) -> R {
-        let k = rayon::current_thread_index().unwrap_or(0) % self.0.len().max(1);
-        match self.0.get(k).map(Mutex::try_lock) {
-            Some(Ok(mut own)) => f(&mut own),
-            _ => f(&mut Default::default()),
-        }
-    }
-}
-
 /// Computes rows `range` (row indices) in parallel, each row's entries in an exactly
-/// sized vector, in the order of `range`, in the `workers`' buffers.
+/// sized vector, in the order of `range`.
 fn rows_par<I>(
     ctx: &Context,
     est: &dyn Estimator,
     range: I,
-    workers: &Workers,
     done: &AtomicU64,
     n: u64,
     progress: &(dyn Fn(u64) + Sync),
@@ -231,8 +202,9 @@ where
     let rows: Vec<(Vec<Entry>, u64)> = range
         .into_par_iter()
         .with_min_len(1)
-        .map(|i| {
-            workers.with(|(row, scratch)| {
+        .map_init(
+            || (Row::default(), Scratch::default()),
+            |(row, scratch), i| {
                 row.entries.clear();
                 row.rays = 0;
                 est.row(ctx, i, row, scratch);
@@ -243,8 +215,8 @@ where
                     progress(d);
                 }
                 (row.entries.as_slice().to_vec(), row.rays)
-            })
-        })
+            },
+        )
         .collect();
     let rays = rows.iter().map(|r| r.1).sum();
     (rows.into_iter().map(|r| r.0).collect(), rays)
@@ -292,7 +264,7 @@ pub fn compute_timed(
     let mut csr;
     if est.upper_only() {
         let t = Instant::now();
-        let (rows, r) = rows_par(ctx, est, 0..n, &Workers::new(), &done, n as u64, progress);
+        let (rows, r) = rows_par(ctx, est, 0..n, &done, n as u64, progress);
         rays = r;
         split.rows = t.elapsed().as_secs_f64();
         let t = Instant::now();
@@ -301,14 +273,12 @@ pub fn compute_timed(
         split.assembly = t.elapsed().as_secs_f64();
     } else {
         csr = CsrBuilder::with_capacity(n, 0);
-        let workers = Workers::new();
         for lo in (0..n).step_by(BLOCK_ROWS) {
             let t = Instant::now();
             let (rows, r) = rows_par(
                 ctx,
                 est,
                 lo..(lo + BLOCK_ROWS).min(n),
-                &workers,
                 &done,
                 n as u64,
                 progress,

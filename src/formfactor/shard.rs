@@ -39,7 +39,7 @@ use rayon::prelude::*;
 
 use serde::{Deserialize, Serialize};
 
-use super::{rows_par, Context, Entry, Estimator, Workers};
+use super::{rows_par, Context, Entry, Estimator};
 use crate::cluster::{in_pool, Cluster, Packed, Traffic};
 use crate::error::Result;
 use crate::matrix::{Block, BlockBuilder, CsrBuilder, FormFactors};
@@ -337,15 +337,7 @@ pub fn compute(
     let (t, cpu) = (Instant::now(), crate::cluster::cpu_seconds());
     let done = AtomicU64::new(0);
     let (rows, rays) = in_pool(cluster.compute_pool(), || {
-        rows_par(
-            ctx,
-            est,
-            mine.clone(),
-            &Workers::new(),
-            &done,
-            mine.len() as u64,
-            progress,
-        )
+        rows_par(ctx, est, mine.clone(), &done, mine.len() as u64, progress)
     });
     report.rows_seconds = t.elapsed().as_secs_f64();
     report.rows_cpu_seconds = crate::cluster::cpu_seconds() - cpu;
