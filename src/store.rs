@@ -409,9 +409,15 @@ fn write_files(
         })
     };
     text("patches.csv", &csv)?;
+    // The hashes side by side, as the files were written (each is one core's work).
+    let hashed: Vec<Result<(String, String)>> = [f_name, se_name, bound_name, "patches.csv"]
+        .par_iter()
+        .map(|&name| Ok((name.to_string(), sha256_file(&dir.join(name))?.1)))
+        .collect();
     let mut sha256 = BTreeMap::new();
-    for name in [f_name, se_name, bound_name, "patches.csv"] {
-        sha256.insert(name.to_string(), sha256_file(&dir.join(name))?.1);
+    for h in hashed {
+        let (name, hash) = h?;
+        sha256.insert(name, hash);
     }
     let objects_skipped = if patches.objects.len() > MAX_OBJECTS {
         format!(

@@ -325,23 +325,28 @@ pub fn write_folder<T>(
 
 /// Adds `manifest.json` to `tmp` and flushes the folder to disk.
 fn write_manifest(tmp: &Path, kind: FolderKind, run: &str) -> Result<()> {
-    let mut files = Vec::new();
-    for name in list(tmp)? {
-        let path = tmp.join(&name);
-        let meta = std::fs::symlink_metadata(&path).map_err(|e| Error::io(&path, e))?;
-        if !meta.is_file() {
-            return Err(Error::Output {
-                path,
-                msg: "an output folder holds regular files only".into(),
-            });
-        }
-        let (bytes, sha256) = sha256_file(&path)?;
-        files.push(ManifestFile {
-            name,
-            bytes,
-            sha256,
-        });
-    }
+    // Hashed side by side: a factors folder holds several files of hundreds of MB, and
+    // hashing is one core's work per file.
+    use rayon::prelude::*;
+    let files = list(tmp)?
+        .into_par_iter()
+        .map(|name| {
+            let path = tmp.join(&name);
+            let meta = std::fs::symlink_metadata(&path).map_err(|e| Error::io(&path, e))?;
+            if !meta.is_file() {
+                return Err(Error::Output {
+                    path,
+                    msg: "an output folder holds regular files only".into(),
+                });
+            }
+            let (bytes, sha256) = sha256_file(&path)?;
+            Ok(ManifestFile {
+                name,
+                bytes,
+                sha256,
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
     let manifest = Manifest {
         writer: format!("radiosity {}", env!("CARGO_PKG_VERSION")),
         kind,
