@@ -466,7 +466,7 @@ impl Scratch {
                 })
             };
             let mut order: Vec<usize> = (0..st * st).collect();
-            order.sort_by_key(|&c| morton(c));
+            order.sort_by_cached_key(|&c| morton(c));
             let [z0, z1] = &mut self.zc;
             z0.clear();
             z1.clear();
