@@ -634,13 +634,10 @@ impl Refiner<'_> {
             else {
                 continue;
             };
-            let d = y - x;
-            let r2 = d.length_squared();
-            let (cx, cy) = (nx.dot(d), -ny.dot(d));
-            if cx <= 0.0 || cy <= 0.0 || r2 <= 0.0 {
+            let Some(w) = super::link::kernel_weight((x, nx, jx), (y, ny, jy)) else {
                 continue;
-            }
-            weights.push(cx * cy / (r2 * r2) * jx * jy);
+            };
+            weights.push(w);
             segs.push(self.vis.segment_ray(x, nx, y, ny));
         }
         if segs.is_empty() {

@@ -35,6 +35,8 @@
 //! Random streams are keyed on `(seed, r, s)`, and element numbering does not depend on
 //! the thread count, so neither do the links.
 
+use glam::DVec3;
+
 use super::blockers::{range, Blockers};
 use super::element::Elements;
 use crate::formfactor::exact::{self, Emitter, Receiver};
@@ -344,6 +346,17 @@ pub fn visible_fraction_again(ctx: &Context, r: u32, s: u32, open: Option<f64>) 
     visible_fraction_keyed(ctx, r, s, ctx.rays, AGAIN, open)
 }
 
+/// The weight of the segment from `x` to `y` (each a point, its surface normal and the area
+/// Jacobian of its parameter map) in a visibility estimate: the form-factor kernel
+/// `cos θ_x cos θ_y / r²` times the Jacobians, over `r²` again because `cos θ` is taken
+/// from the unnormalised direction. `None` when either side faces away (the kernel is 0).
+pub fn kernel_weight(x: (DVec3, DVec3, f64), y: (DVec3, DVec3, f64)) -> Option<f64> {
+    let w = y.0 - x.0;
+    let r2 = w.length_squared();
+    let (cx, cy) = (x.1.dot(w), -y.1.dot(w));
+    (cx > 0.0 && cy > 0.0 && r2 > 0.0).then(|| cx * cy / (r2 * r2) * x.2 * y.2)
+}
+
 /// [`visible_fraction`] with `n × n` rays from the stream tagged `tag`.
 fn visible_fraction_keyed(
     ctx: &Context,
@@ -387,13 +400,10 @@ fn visible_fraction_keyed(
         let (a2, b2) = ((d % n) as f64, (d / n) as f64);
         let (y, jy) = e.point(s, (a2 + rng.next_f64()) * inv, (b2 + rng.next_f64()) * inv);
         let Some((x, jx)) = at else { continue };
-        let w = y - x;
-        let r2 = w.length_squared();
-        let (cx, cy) = (nr.dot(w), -ns.dot(w));
-        if cx <= 0.0 || cy <= 0.0 || r2 <= 0.0 {
+        let Some(w) = kernel_weight((x, nr, jx), (y, ns, jy)) else {
             continue;
-        }
-        weights.push(cx * cy / (r2 * r2) * jx * jy);
+        };
+        weights.push(w);
         segs.push(ctx.vis.segment_ray(x, nr, y, ns));
     }
     if segs.is_empty() {
