@@ -4,7 +4,8 @@
 //! `stderr.mtx` or their npz pair, `patches.csv`, `provenance.json`) is only meaningful as a set: files from
 //! two runs side by side are a silent wrong answer. So every file of a run is written into a
 //! temporary sibling folder, a `manifest.json` naming the run and every file (size and
-//! SHA-256) is added, and the folder is renamed into place:
+//! SHA-256; a file its writer hashed already is not read again: [`write_folder_hashed`])
+//! is added, and the folder is renamed into place:
 //!
 //! - no folder at the path, or an empty one: the new folder is renamed there;
 //! - a folder this tool wrote before for the same [`FolderKind`] (it has a `manifest.json`
@@ -80,6 +81,18 @@ pub struct ManifestFile {
     pub bytes: u64,
     /// SHA-256 of the content, lower-case hex.
     pub sha256: String,
+}
+
+impl ManifestFile {
+    /// The record of `dir/name` as it is on disk: its size and SHA-256, read from the file.
+    pub fn of(dir: &Path, name: &str) -> Result<ManifestFile> {
+        let (bytes, sha256) = sha256_file(&dir.join(name))?;
+        Ok(ManifestFile {
+            name: name.to_string(),
+            bytes,
+            sha256,
+        })
+    }
 }
 
 /// `manifest.json`: the run that wrote a folder and every file it wrote.
@@ -293,6 +306,20 @@ pub fn write_folder<T>(
     kind: FolderKind,
     f: impl FnOnce(&Path) -> Result<T>,
 ) -> Result<T> {
+    write_folder_hashed(dir, kind, |tmp| Ok((f(tmp)?, Vec::new())))
+}
+
+/// [`write_folder`] for a writer that hashes files itself (a factors folder records their
+/// SHA-256 in its provenance): besides its value, `f` returns the [`ManifestFile`]s of the
+/// files it hashed ([`ManifestFile::of`], once each file is complete), and the manifest
+/// takes them as they are, so each file is read and hashed once. The files `f` has no
+/// record for (and any whose size no longer matches its record) are hashed for the
+/// manifest; a record of a file that is not in the folder is an error.
+pub fn write_folder_hashed<T>(
+    dir: &Path,
+    kind: FolderKind,
+    f: impl FnOnce(&Path) -> Result<(T, Vec<ManifestFile>)>,
+) -> Result<T> {
     static COUNTER: AtomicU64 = AtomicU64::new(0);
     check_folder(dir, kind)?;
     let name = dir.file_name().ok_or_else(|| Error::Output {
@@ -309,8 +336,8 @@ pub fn write_folder<T>(
     let tmp = sibling(&parent, name, "tmp", n);
     std::fs::create_dir(&tmp).map_err(|e| Error::io(dir, e))?;
     let result = f(&tmp)
-        .and_then(|value| {
-            write_manifest(&tmp, kind, &run_id(n))?;
+        .and_then(|(value, hashed)| {
+            write_manifest(&tmp, kind, &run_id(n), hashed)?;
             Ok(value)
         })
         .and_then(|value| {
@@ -323,14 +350,36 @@ pub fn write_folder<T>(
     result.map_err(|e| rename_path(e, &tmp, dir))
 }
 
-/// Adds `manifest.json` to `tmp` and flushes the folder to disk.
-fn write_manifest(tmp: &Path, kind: FolderKind, run: &str) -> Result<()> {
-    // Hashed side by side: a factors folder holds several files of hundreds of MB, and
-    // hashing is one core's work per file.
+/// Adds `manifest.json` to `tmp` and flushes the folder to disk. `hashed` are records of
+/// files of `tmp` the writer already hashed (see [`write_folder_hashed`]): only the other
+/// files are hashed here.
+fn write_manifest(
+    tmp: &Path,
+    kind: FolderKind,
+    run: &str,
+    hashed: Vec<ManifestFile>,
+) -> Result<()> {
+    // Hashed side by side: a folder may hold several files of hundreds of MB, and hashing
+    // is one core's work per file.
     use rayon::prelude::*;
-    let files = list(tmp)?
-        .into_par_iter()
+    let mut known: std::collections::BTreeMap<String, ManifestFile> =
+        hashed.into_iter().map(|f| (f.name.clone(), f)).collect();
+    let names: Vec<(String, Option<ManifestFile>)> = list(tmp)?
+        .into_iter()
         .map(|name| {
+            let record = known.remove(&name);
+            (name, record)
+        })
+        .collect();
+    if let Some(name) = known.keys().next() {
+        return Err(Error::Output {
+            path: tmp.join(name),
+            msg: "hashed by its writer but not in the folder".into(),
+        });
+    }
+    let files = names
+        .into_par_iter()
+        .map(|(name, record)| {
             let path = tmp.join(&name);
             let meta = std::fs::symlink_metadata(&path).map_err(|e| Error::io(&path, e))?;
             if !meta.is_file() {
@@ -339,12 +388,10 @@ fn write_manifest(tmp: &Path, kind: FolderKind, run: &str) -> Result<()> {
                     msg: "an output folder holds regular files only".into(),
                 });
             }
-            let (bytes, sha256) = sha256_file(&path)?;
-            Ok(ManifestFile {
-                name,
-                bytes,
-                sha256,
-            })
+            match record {
+                Some(f) if f.bytes == meta.len() => Ok(f),
+                _ => ManifestFile::of(tmp, &name),
+            }
         })
         .collect::<Result<Vec<_>>>()?;
     let manifest = Manifest {
@@ -536,6 +583,51 @@ mod tests {
         assert!(!dead.exists() && !aside.exists());
         assert!(live.exists());
         let _ = std::fs::remove_dir_all(&live);
+    }
+
+    #[test]
+    fn the_manifest_takes_the_writers_hashes() {
+        let root = test_dir("folder-hashed");
+        let dir = root.join("out");
+        // A record the manifest takes as it is (its hash is not the file's: the file is
+        // not read again), a stale one (the file grew since) and none.
+        let taken = ManifestFile {
+            name: "radiosity.exr".into(),
+            bytes: 3,
+            sha256: "recorded".into(),
+        };
+        write_folder_hashed(&dir, FolderKind::Bake, |tmp| {
+            for name in ["radiosity.exr", "mesh.ply", "preview.png"] {
+                std::fs::write(tmp.join(name), "one").unwrap();
+            }
+            let stale = ManifestFile::of(tmp, "mesh.ply")?;
+            std::fs::write(tmp.join("mesh.ply"), "two!").unwrap();
+            Ok(((), vec![taken.clone(), stale]))
+        })
+        .unwrap();
+        let m = Manifest::read(&dir).unwrap();
+        let names: Vec<&str> = m.files.iter().map(|f| f.name.as_str()).collect();
+        assert_eq!(names, ["mesh.ply", "preview.png", "radiosity.exr"]);
+        assert_eq!(m.files[0], ManifestFile::of(&dir, "mesh.ply").unwrap());
+        assert_eq!(m.files[1], ManifestFile::of(&dir, "preview.png").unwrap());
+        assert_eq!(m.files[2], taken);
+        // A record of a file the folder does not hold fails the run.
+        let absent = ManifestFile {
+            name: "mesh.glb".into(),
+            ..taken
+        };
+        let err = write_folder_hashed(&dir, FolderKind::Bake, |tmp| {
+            std::fs::write(tmp.join("radiosity.exr"), "two").unwrap();
+            Ok(((), vec![absent]))
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("mesh.glb") && err.contains("not in the folder"),
+            "{err}"
+        );
+        // The folder of the first run is left.
+        assert_eq!(Manifest::read(&dir).unwrap(), m);
     }
 
     #[test]
