@@ -30,7 +30,7 @@
 //!   files, so they also say which layout the folder holds);
 //! - `manifest.json`: the run that wrote the folder (see [`crate::output::folder`]).
 //!
-//! The folder is written whole ([`write_folder`]): into a temporary sibling, renamed into
+//! The folder is written whole ([`crate::output::write_folder`]): into a temporary sibling, renamed into
 //! place in one step. `bake --factors DIR` reads it back and refuses a folder whose patch
 //! count or geometry hash differs from the scene being baked (reflectances and emissions may
 //! change, they are not part of the hash; geometry and subdivision may not), or whose files
@@ -60,8 +60,8 @@ use crate::matrix::{Bar, FormFactors};
 use crate::mesh::PatchSet;
 use crate::npz::{self, Compression};
 use crate::objects::{ObjectFactors, MAX_OBJECTS};
-use crate::output::folder::{hex, sha256_file};
-use crate::output::{csv_field, write_atomic, write_folder, FolderKind};
+use crate::output::folder::{hex, sha256_file, write_folder_hashed, ManifestFile};
+use crate::output::{csv_field, write_atomic, FolderKind};
 use crate::repair::Repair;
 
 /// The folder layout version [`fn@write`] produces and [`fn@read`] accepts.
@@ -295,7 +295,7 @@ pub fn write(
 ) -> Result<Provenance> {
     let format = format.resolve(ff.f.nnz());
     check_values(dir, ff, format)?;
-    write_folder(dir, FolderKind::Factors, |tmp| {
+    write_folder_hashed(dir, FolderKind::Factors, |tmp| {
         write_files(tmp, patches, ff, repair, format)
     })
 }
@@ -325,14 +325,16 @@ fn check_values(dir: &Path, ff: &FormFactors, format: Format) -> Result<()> {
     Ok(())
 }
 
-/// The files of a factors folder, written into `dir`.
+/// The files of a factors folder, written into `dir`; returns the provenance and the
+/// records of the files it hashed for it (all but `provenance.json`), for the manifest
+/// ([`write_folder_hashed`]).
 fn write_files(
     dir: &Path,
     patches: &PatchSet,
     ff: &FormFactors,
     repair: Repair,
     format: Format,
-) -> Result<Provenance> {
+) -> Result<(Provenance, Vec<ManifestFile>)> {
     let [f_name, se_name] = format.files();
     let bound_name = format.bound_file();
     // The two parts of the bars, each 0 where the other holds.
@@ -347,11 +349,16 @@ fn write_files(
             }
         })
         .unzip();
-    match format {
+    let mut hashed: Vec<ManifestFile> = match format {
         Format::Mtx | Format::Auto => {
             write_mtx(&dir.join(f_name), ff, ff.f.data(), F_COMMENT)?;
             write_mtx(&dir.join(se_name), ff, &se, SE_COMMENT)?;
             write_mtx(&dir.join(bound_name), ff, &bound, BOUND_COMMENT)?;
+            // The hashes side by side (each is one core's work).
+            [f_name, se_name, bound_name]
+                .par_iter()
+                .map(|&name| ManifestFile::of(dir, name))
+                .collect::<Result<_>>()?
         }
         Format::Npz | Format::NpzDeflated => {
             let compression = if format == Format::Npz {
@@ -363,21 +370,30 @@ fn write_files(
             let ptr = ff.f.indptr();
             let ptr = ptr.to_proper();
             let (f, se_path, b_path) = (dir.join(f_name), dir.join(se_name), dir.join(bound_name));
-            // The files side by side: each is conversion and copying, one core's work.
+            // The files side by side: each is conversion and copying, one core's work, and
+            // each is hashed (from disk) as soon as it is complete, while the others are
+            // still being written.
             let (a, (b, c)) = rayon::join(
-                || npz::write(&f, n, &ptr, ff.f.indices(), ff.f.data(), compression),
+                || {
+                    npz::write(&f, n, &ptr, ff.f.indices(), ff.f.data(), compression)
+                        .and_then(|()| ManifestFile::of(dir, f_name))
+                },
                 || {
                     rayon::join(
-                        || npz::write(&se_path, n, &ptr, ff.f.indices(), &se, compression),
-                        || npz::write(&b_path, n, &ptr, ff.f.indices(), &bound, compression),
+                        || {
+                            npz::write(&se_path, n, &ptr, ff.f.indices(), &se, compression)
+                                .and_then(|()| ManifestFile::of(dir, se_name))
+                        },
+                        || {
+                            npz::write(&b_path, n, &ptr, ff.f.indices(), &bound, compression)
+                                .and_then(|()| ManifestFile::of(dir, bound_name))
+                        },
                     )
                 },
             );
-            a?;
-            b?;
-            c?;
+            vec![a?, b?, c?]
         }
-    }
+    };
     let mut csv =
         String::from("id,area,cx,cy,cz,nx,ny,nz,object,material,rho_r,rho_g,rho_b,e_r,e_g,e_b\n");
     for i in 0..patches.len() {
@@ -409,16 +425,7 @@ fn write_files(
         })
     };
     text("patches.csv", &csv)?;
-    // The hashes side by side, as the files were written (each is one core's work).
-    let hashed: Vec<Result<(String, String)>> = [f_name, se_name, bound_name, "patches.csv"]
-        .par_iter()
-        .map(|&name| Ok((name.to_string(), sha256_file(&dir.join(name))?.1)))
-        .collect();
-    let mut sha256 = BTreeMap::new();
-    for h in hashed {
-        let (name, hash) = h?;
-        sha256.insert(name, hash);
-    }
+    hashed.push(ManifestFile::of(dir, "patches.csv")?);
     let objects_skipped = if patches.objects.len() > MAX_OBJECTS {
         format!(
             "{} objects, more than the {MAX_OBJECTS} the object tables are made for",
@@ -432,10 +439,14 @@ fn write_files(
         text(se, &o.matrix_csv(&o.se))?;
         text(bound, &o.matrix_csv(&o.bound))?;
         for name in OBJECT_TABLES {
-            sha256.insert(name.to_string(), sha256_file(&dir.join(name))?.1);
+            hashed.push(ManifestFile::of(dir, name)?);
         }
         String::new()
     };
+    let sha256 = hashed
+        .iter()
+        .map(|f| (f.name.clone(), f.sha256.clone()))
+        .collect();
     let prov = Provenance {
         format: FORMAT,
         writer: format!("radiosity {}", env!("CARGO_PKG_VERSION")),
@@ -456,7 +467,7 @@ fn write_files(
     };
     let prov_path = dir.join("provenance.json");
     crate::output::write_json(&prov_path, &prov)?;
-    Ok(prov)
+    Ok((prov, hashed))
 }
 
 /// Longest `provenance.json` read (it is a few hundred bytes).
