@@ -30,7 +30,7 @@
 //!   files, so they also say which layout the folder holds);
 //! - `manifest.json`: the run that wrote the folder (see [`crate::output::folder`]).
 //!
-//! The folder is written whole ([`crate::output::write_folder`]): into a temporary sibling, renamed into
+//! The folder is written whole ([`write_folder_hashed`]): into a temporary sibling, renamed into
 //! place in one step. `bake --factors DIR` reads it back and refuses a folder whose patch
 //! count or geometry hash differs from the scene being baked (reflectances and emissions may
 //! change, they are not part of the hash; geometry and subdivision may not), or whose files
