@@ -7,14 +7,25 @@
 //! ([`crate::formfactor::shard`]), the solver ([`crate::solve::distributed`]) and the
 //! pipeline see nothing but this trait.
 //!
-//! Every operation is collective: every rank calls it, in the same order, or the run
-//! hangs. A rank that fails does not return from a collective with an error to the
+//! Every operation but [`Cluster::send`] and [`Cluster::receive_any`] is collective:
+//! every rank calls it, in the same order, or the run hangs. Those two are point to
+//! point: every message sent must be received, in the order of the protocol of their
+//! caller. A rank that fails does not return from a collective with an error to the
 //! others; under MPI it aborts the whole job (see `crate::mpi`).
 
 use std::cell::Cell;
+use std::collections::VecDeque;
 use std::sync::{Arc, Barrier, Mutex};
 
 use crate::error::{Error, Result};
+
+/// First sleep between two tests of a pending operation (a message, a barrier): short
+/// enough for a latency well under a chunk of rows' computing.
+pub const NAP_FIRST: std::time::Duration = std::time::Duration::from_micros(50);
+
+/// Longest such sleep, each one doubling the last: long enough to leave the core to the
+/// rank's compute threads (Open MPI's blocking calls spin).
+pub const NAP_LAST: std::time::Duration = std::time::Duration::from_millis(2);
 
 /// Bytes this rank has sent to and received from other ranks (its own share, which
 /// never leaves the process, is not counted).
@@ -203,6 +214,28 @@ pub trait Cluster {
         Ok(())
     }
 
+    /// Sends `bytes` to rank `to` (not collective: `to` takes them with
+    /// [`Cluster::receive_any`]). Returns once the bytes have left `bytes`; waiting
+    /// sleeps rather than spins, so that a rank's compute threads keep its cores.
+    fn send(&self, to: usize, bytes: &[u8]) -> Result<()>;
+
+    /// The next bytes some rank sent to this one with [`Cluster::send`], and its rank,
+    /// when some have arrived (messages of one sender arrive in the order it sent them).
+    fn try_receive(&self) -> Result<Option<(usize, Vec<u8>)>>;
+
+    /// [`Cluster::try_receive`] until bytes arrive, sleeping from [`NAP_FIRST`] to
+    /// [`NAP_LAST`] in between rather than spinning.
+    fn receive_any(&self) -> Result<(usize, Vec<u8>)> {
+        let mut nap = NAP_FIRST;
+        loop {
+            if let Some(m) = self.try_receive()? {
+                return Ok(m);
+            }
+            std::thread::sleep(nap);
+            nap = (nap * 2).min(NAP_LAST);
+        }
+    }
+
     /// Bytes this rank has sent and received so far.
     fn traffic(&self) -> Traffic;
 
@@ -325,6 +358,12 @@ impl Cluster for Single {
     fn all_sum_u64(&self, _: &mut [u64]) -> Result<()> {
         Ok(())
     }
+    fn send(&self, to: usize, _: &[u8]) -> Result<()> {
+        Err(self.fail(format!("a message to rank {to} of a run of one process")))
+    }
+    fn try_receive(&self) -> Result<Option<(usize, Vec<u8>)>> {
+        Err(self.fail("a message awaited in a run of one process".into()))
+    }
     fn traffic(&self) -> Traffic {
         Traffic::default()
     }
@@ -332,9 +371,14 @@ impl Cluster for Single {
 
 /// What the ranks of a [`Local`] cluster share: a barrier and one mailbox per ordered
 /// pair of ranks.
+/// A point-to-point message: its sender and its bytes.
+type Message = (usize, Vec<u8>);
+
 struct Hub {
     barrier: Barrier,
     mail: Mutex<Vec<Vec<u8>>>,
+    /// Point-to-point messages waiting, per receiving rank.
+    inbox: Mutex<Vec<VecDeque<Message>>>,
 }
 
 /// Ranks on threads of one process, talking through shared memory: the distributed code
@@ -355,6 +399,7 @@ impl Local {
         let hub = Arc::new(Hub {
             barrier: Barrier::new(size),
             mail: Mutex::new(vec![Vec::new(); size * size]),
+            inbox: Mutex::new(vec![VecDeque::new(); size]),
         });
         std::thread::scope(|s| {
             let handles: Vec<_> = (0..size)
@@ -415,6 +460,27 @@ impl Cluster for Local {
         // Nobody writes the mailboxes again before everyone has read theirs.
         self.hub.barrier.wait();
         Ok(Packed::from_parts(got))
+    }
+    fn send(&self, to: usize, bytes: &[u8]) -> Result<()> {
+        if to >= self.size || to == self.rank {
+            return Err(self.fail(format!("a message to rank {to}")));
+        }
+        let mut inbox = self.hub.inbox.lock().unwrap_or_else(|e| e.into_inner());
+        inbox[to].push_back((self.rank, bytes.to_vec()));
+        let mut t = self.traffic.get();
+        t.sent += bytes.len() as u64;
+        self.traffic.set(t);
+        Ok(())
+    }
+    fn try_receive(&self) -> Result<Option<(usize, Vec<u8>)>> {
+        let mut inbox = self.hub.inbox.lock().unwrap_or_else(|e| e.into_inner());
+        let got = inbox[self.rank].pop_front();
+        if let Some((_, bytes)) = &got {
+            let mut t = self.traffic.get();
+            t.received += bytes.len() as u64;
+            self.traffic.set(t);
+        }
+        Ok(got)
     }
     fn traffic(&self) -> Traffic {
         self.traffic.get()

@@ -30,6 +30,46 @@ pub struct Entry {
     pub se: f64,
 }
 
+/// A row's entries in column order, however they are held: a vector of [`Entry`], or
+/// the bytes another rank sent (`crate::formfactor::shard`). What the assembly
+/// ([`CsrBuilder::from_upper`], [`CsrBuilder::push_rows`]) reads, so that rows that
+/// arrive as bytes are copied into the matrix once, not first into vectors.
+pub trait RowEntries: Sync {
+    /// Number of entries.
+    fn len(&self) -> usize;
+    /// Entry `k` (`k < len`).
+    fn at(&self, k: usize) -> Entry;
+    /// True without entries.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// The first entry whose column is at least `j` (`len` when none is).
+    fn first_from(&self, j: usize) -> usize {
+        let (mut lo, mut hi) = (0, self.len());
+        while lo < hi {
+            let mid = (lo + hi) / 2;
+            if (self.at(mid).j as usize) < j {
+                lo = mid + 1;
+            } else {
+                hi = mid;
+            }
+        }
+        lo
+    }
+}
+
+impl RowEntries for Vec<Entry> {
+    fn len(&self) -> usize {
+        Vec::len(self)
+    }
+    fn at(&self, k: usize) -> Entry {
+        self[k]
+    }
+    fn first_from(&self, j: usize) -> usize {
+        self.partition_point(|e| (e.j as usize) < j)
+    }
+}
+
 impl Entry {
     /// An entry whose error is deterministic, bounded by `bound` (>= 0).
     pub fn bounded(j: u32, f: f64, bound: f64) -> Entry {
@@ -451,10 +491,12 @@ impl CsrBuilder {
     /// into the arrays' spare capacity (no zero fill first: the pages are first touched by
     /// the threads that fill them).
     #[allow(unsafe_code)]
-    pub fn push_rows(&mut self, rows: &[Vec<Entry>]) {
-        debug_assert!(rows.iter().all(|r| r.windows(2).all(|w| w[0].j < w[1].j)));
+    pub fn push_rows<R: RowEntries>(&mut self, rows: &[R]) {
+        debug_assert!(rows
+            .iter()
+            .all(|r| (1..r.len()).all(|k| r.at(k - 1).j < r.at(k).j)));
         let base = self.indices.len();
-        let nnz: usize = rows.iter().map(Vec::len).sum();
+        let nnz: usize = rows.iter().map(R::len).sum();
         self.reserve(nnz);
         let mut end = base;
         for r in rows {
@@ -475,7 +517,8 @@ impl CsrBuilder {
             parts.push((r, a, b, c));
         }
         parts.into_par_iter().for_each(|(r, ix, dx, sx)| {
-            for (k, e) in r.iter().enumerate() {
+            for k in 0..r.len() {
+                let e = r.at(k);
                 ix[k].write(e.j);
                 dx[k].write(e.f);
                 sx[k].write(Bar::of(e.se).stored_f32());
@@ -496,15 +539,16 @@ impl CsrBuilder {
     /// standard error scaled alike. Rows are filled in parallel over blocks of destination
     /// rows; each block gathers its mirrored entries from the source rows in row order, so
     /// every row comes out sorted.
-    pub fn from_upper(rows: &[Vec<Entry>], area: &[f64]) -> CsrBuilder {
+    pub fn from_upper<R: RowEntries>(rows: &[R], area: &[f64]) -> CsrBuilder {
         let n = rows.len();
         debug_assert!(rows.iter().enumerate().all(|(i, r)| {
-            r.windows(2).all(|w| w[0].j < w[1].j) && r.iter().all(|e| e.j as usize > i)
+            (1..r.len()).all(|k| r.at(k - 1).j < r.at(k).j)
+                && (0..r.len()).all(|k| r.at(k).j as usize > i)
         }));
         let mut lower = vec![0usize; n];
         for r in rows {
-            for e in r {
-                lower[e.j as usize] += 1;
+            for k in 0..r.len() {
+                lower[r.at(k).j as usize] += 1;
             }
         }
         let mut indptr = Vec::with_capacity(n + 1);
@@ -538,8 +582,10 @@ impl CsrBuilder {
             let mut cursor: Vec<usize> = (j0..j1).map(|j| indptr_ref[j] - off).collect();
             // Mirrored entries: source rows i < j1 with columns in [j0, j1), in row order.
             for (i, r) in rows[..j1].iter().enumerate() {
-                let lo = r.partition_point(|e| (e.j as usize) < j0);
-                for e in r[lo..].iter().take_while(|e| (e.j as usize) < j1) {
+                for e in (r.first_from(j0)..r.len())
+                    .map(|k| r.at(k))
+                    .take_while(|e| (e.j as usize) < j1)
+                {
                     let j = e.j as usize;
                     let s = area[i] / area[j];
                     let p = &mut cursor[j - j0];
@@ -549,7 +595,9 @@ impl CsrBuilder {
             }
             // Then each row's own upper part.
             for (j, p) in (j0..j1).zip(cursor) {
-                for (k, e) in rows[j].iter().enumerate() {
+                let r = &rows[j];
+                for k in 0..r.len() {
+                    let e = r.at(k);
                     (ix[p + k], dx[p + k], sx[p + k]) = (e.j, e.f, Bar::of(e.se).stored_f32());
                 }
             }

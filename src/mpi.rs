@@ -16,7 +16,9 @@
 //!
 //! Fault injection, for the tests of that: `RADIOSITY_FAULT=RANK:error` makes rank RANK
 //! fail with an error, `RADIOSITY_FAULT=RANK:kill` makes it kill itself with SIGKILL, both
-//! on entering the exchange of the form-factor rows (after computing its share).
+//! on entering its first exchange of form-factor rows (after its first chunk of rows, when
+//! they are streamed to rank 0; after its whole share, for the blocks of a distributed
+//! solve).
 
 use std::cell::Cell;
 
@@ -43,6 +45,9 @@ pub fn launched() -> bool {
 /// of ranks: each `MPI_Alltoallv` stays under 1 GiB (its counts and displacements are
 /// `int`s).
 const ROUND_BYTES: usize = 1 << 30;
+
+/// The tag of [`Cluster::send`]'s messages.
+const ROWS_TAG: i32 = 17;
 
 /// What `RADIOSITY_FAULT` asks of this rank.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -363,14 +368,14 @@ impl Cluster for World {
     /// `MPI_Ibarrier`, tested with sleeps growing from 50 µs to 2 ms in between.
     fn wait_for_all(&self) -> Result<()> {
         let mut req = self.world.immediate_barrier();
-        let mut nap = std::time::Duration::from_micros(50);
+        let mut nap = crate::cluster::NAP_FIRST;
         loop {
             match req.test() {
                 Ok(_) => return Ok(()),
                 Err(r) => {
                     req = r;
                     std::thread::sleep(nap);
-                    nap = (nap * 2).min(std::time::Duration::from_millis(2));
+                    nap = (nap * 2).min(crate::cluster::NAP_LAST);
                 }
             }
         }
@@ -382,6 +387,50 @@ impl Cluster for World {
             .all_reduce_into(&mine[..], v, SystemOperation::sum());
         self.add_traffic(8 * v.len(), 8 * v.len());
         Ok(())
+    }
+
+    /// `MPI_Isend` (tag `ROWS_TAG`), tested with sleeps growing from 50 µs to 2 ms.
+    fn send(&self, to: usize, bytes: &[u8]) -> Result<()> {
+        self.fault_point()?;
+        if to >= self.size() || to == self.rank() {
+            return Err(self.fail(format!("a message to rank {to}")));
+        }
+        count(self, bytes.len())?;
+        let dest = self.world.process_at_rank(to as i32);
+        ::mpi::request::scope(|scope| {
+            let mut req = dest.immediate_send_with_tag(scope, bytes, ROWS_TAG);
+            let mut nap = crate::cluster::NAP_FIRST;
+            loop {
+                match req.test() {
+                    Ok(_) => break,
+                    Err(r) => {
+                        req = r;
+                        std::thread::sleep(nap);
+                        nap = (nap * 2).min(crate::cluster::NAP_LAST);
+                    }
+                }
+            }
+        });
+        self.add_traffic(bytes.len(), 0);
+        Ok(())
+    }
+
+    /// `MPI_Improbe` (tag `ROWS_TAG`, any source), then `MPI_Mrecv` of the matched
+    /// message.
+    fn try_receive(&self) -> Result<Option<(usize, Vec<u8>)>> {
+        let Some((msg, status)) = self
+            .world
+            .any_process()
+            .immediate_matched_probe_with_tag(ROWS_TAG)
+        else {
+            return Ok(None);
+        };
+        let len = usize::try_from(status.count(u8::equivalent_datatype()))
+            .map_err(|_| self.fail("a message of negative length".into()))?;
+        let mut buf = vec![0u8; len];
+        msg.matched_receive_into(&mut buf[..]);
+        self.add_traffic(0, len);
+        Ok(Some((status.source_rank() as usize, buf)))
     }
 
     fn traffic(&self) -> Traffic {

@@ -10,39 +10,46 @@
 //!    integrated without rays at the evaluations its quadrature order implies, or sampled
 //!    with rays, see [`cost`]), and the estimates are all-gathered, so every rank holds
 //!    the same vector.
-//! 2. **Share.** [`assign`] deals the rows out by cost (longest processing time first:
-//!    rows by decreasing estimate, each to the rank with the least estimated work so far,
-//!    ties to the lower row and the lower rank). The share depends on the estimates alone:
-//!    the same on every rank and in every run.
+//! 2. **Share.** [`Target::Blocks`]: [`assign`] deals the rows out by cost (longest
+//!    processing time first: rows by decreasing estimate, each to the rank with the
+//!    least estimated work so far, ties to the lower row and the lower rank), the same
+//!    on every rank and in every run. [`Target::Root`]: rank 0 deals consecutive chunks
+//!    of rows, of decreasing estimated cost (`deal_chunks`), to the ranks as they ask
+//!    (`gather_on_root`): a rank that is slower (sharing its core, or rank 0 doing
+//!    the receiving) computes fewer.
 //! 3. **Rows.** Each rank computes its rows in parallel on its threads, exactly as one
 //!    process computes them (the same estimator, the same random streams keyed on
 //!    `(seed, i, j, replicate)`, each row sorted the same way): a row's entries do not
 //!    depend on which rank computes it.
-//! 4. **Assembly.** [`Target::Root`]: the rows go to rank 0, which assembles them with the
-//!    code one process uses ([`CsrBuilder::from_upper`] for the estimators that compute
-//!    each pair once, [`CsrBuilder::push_rows`] for the others): the matrix is the one
-//!    process's, bit for bit, and so are the files written from it. [`Target::Blocks`]:
-//!    each rank ends with a contiguous block of full rows ([`Block`], bounds balanced by
-//!    stored entries), the same rows bit for bit, for the distributed solve: each entry
-//!    goes to the rank of its row and, when its mirror (the estimators that compute each
-//!    pair once) or its back entry (the others) falls elsewhere, to the rank of its
-//!    column too.
+//! 4. **Assembly.** [`Target::Root`]: each rank sends its finished chunks to rank 0 while
+//!    it computes the next (point to point, [`Cluster::send`]), so that the transfer
+//!    overlaps the rows. Rank 0 keeps the received bytes and assembles straight from
+//!    them ([`crate::matrix::RowEntries`]; no copy into vectors first), with the code one
+//!    process uses ([`CsrBuilder::from_upper`] for the estimators that compute each pair
+//!    once, [`CsrBuilder::push_rows`] for the others): the matrix is the one process's,
+//!    bit for bit, and so are the files written from it. [`Target::Blocks`]: each rank
+//!    ends with a contiguous block of full rows ([`Block`], bounds balanced by stored
+//!    entries), the same rows bit for bit, for the distributed solve: each entry goes to
+//!    the rank of its row and, when its mirror (the estimators that compute each pair
+//!    once) or its back entry (the others) falls elsewhere, to the rank of its column
+//!    too (one collective exchange).
 //!
 //! On the wire a row is `row (u32), length (u32)` and then `column (u32), value (f64),
 //! standard error (f64)` per entry, little-endian: 20 bytes per entry (the mirror needs
-//! the standard error before its rounding to `f32`).
+//! the standard error before its rounding to `f32`). A message to rank 0 starts with its
+//! kind (`u32`): `ASK` (for a chunk; the answer is the chunk's index as a `u64`, or
+//! `NONE_LEFT`) or `ROWS` (row parts follow).
 
-use std::sync::atomic::AtomicU64;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::OnceLock;
 use std::time::Instant;
-
-use rayon::prelude::*;
 
 use serde::{Deserialize, Serialize};
 
 use super::{rows_par, Context, Entry, Estimator};
 use crate::cluster::{in_pool, Cluster, Packed, Traffic};
 use crate::error::Result;
-use crate::matrix::{Block, BlockBuilder, CsrBuilder, FormFactors};
+use crate::matrix::{Block, BlockBuilder, CsrBuilder, FormFactors, RowEntries};
 
 /// Rough costs in nanoseconds of one core (measured on the development machine's
 /// release build; only their ratios matter) that [`Estimator::row_costs`] adds up.
@@ -186,13 +193,15 @@ pub struct RankReport {
     pub rows_seconds: f64,
     /// CPU seconds computing its rows (all its threads; [`crate::cluster::cpu_seconds`]).
     pub rows_cpu_seconds: f64,
-    /// Seconds waiting for the slowest rank: from the end of its rows until every rank
-    /// had finished theirs, and from the end of its packing until every rank had packed.
+    /// Seconds after its own rows that the rows' travel did not hide. Gather to rank 0
+    /// ([`Target::Root`], streamed): from the end of its rows until the last chunk was
+    /// on rank 0. Blocks: from the end of its rows until every rank had finished theirs,
+    /// and from the end of its packing until every rank had packed.
     pub wait_seconds: f64,
-    /// Seconds packing its rows for the other ranks.
+    /// Seconds packing its rows for the other ranks; on rank 0 of a gather, checking and
+    /// indexing the rows received. Streamed, these overlap the rows.
     pub pack_seconds: f64,
-    /// Seconds in the exchange of rows: the transfer, and on rank 0 of a gather the
-    /// unpacking.
+    /// Seconds in the exchanges of rows (the transfer). Streamed, these overlap the rows.
     pub exchange_seconds: f64,
     /// Seconds assembling what it received.
     pub assembly_seconds: f64,
@@ -244,7 +253,7 @@ fn each_part(
     n: usize,
     mut f: impl FnMut(usize, usize),
 ) -> Result<()> {
-    let word = |b: &[u8]| u32::from_le_bytes(b.try_into().expect("4 bytes")) as usize;
+    let word = |b: &[u8]| word(b) as usize;
     let mut at = 0;
     while at < buf.len() {
         if buf.len() - at < 8 {
@@ -267,20 +276,15 @@ fn each_part(
 /// The entries of the row part whose header starts `buf` (found by [`each_part`]), or
 /// `None` when a column is past `n`.
 fn decode_part(buf: &[u8], n: usize, entries: &mut Vec<Entry>) -> Option<()> {
-    let word = |b: &[u8]| u32::from_le_bytes(b.try_into().expect("4 bytes"));
     let len = word(&buf[4..8]) as usize;
     entries.clear();
     entries.reserve(len);
     for rec in buf[8..8 + 20 * len].chunks_exact(20) {
-        let j = word(&rec[..4]);
-        if j as usize >= n {
+        let e = wire_entry(rec);
+        if e.j as usize >= n {
             return None;
         }
-        entries.push(Entry {
-            j,
-            f: f64::from_bits(u64::from_le_bytes(rec[4..12].try_into().expect("8 bytes"))),
-            se: f64::from_bits(u64::from_le_bytes(rec[12..20].try_into().expect("8 bytes"))),
-        });
+        entries.push(e);
     }
     Some(())
 }
@@ -326,13 +330,25 @@ pub fn compute(
 
     let t = Instant::now();
     let costs = estimate_costs(ctx, est, cluster)?;
+    let total: f64 = costs.iter().sum();
+    report.cost_seconds = t.elapsed().as_secs_f64();
+    if target == Target::Root {
+        let chunks = deal_chunks(&costs, k);
+        return gather_on_root(
+            ctx,
+            est,
+            cluster,
+            (&chunks, &costs),
+            report,
+            (start, traffic0),
+            progress,
+        );
+    }
     let owner = assign(&costs, k);
     let mine: Vec<usize> = (0..n).filter(|&i| owner[i] as usize == me).collect();
-    let total: f64 = costs.iter().sum();
     let my_cost: f64 = mine.iter().map(|&i| costs[i]).sum();
     report.cost_share = if total > 0.0 { my_cost / total } else { 0.0 };
     report.rows = mine.len();
-    report.cost_seconds = t.elapsed().as_secs_f64();
 
     let (t, cpu) = (Instant::now(), crate::cluster::cpu_seconds());
     let done = AtomicU64::new(0);
@@ -353,149 +369,454 @@ pub fn compute(
     let upper = est.upper_only();
     let t_pack = Instant::now();
 
-    let share = match target {
-        Target::Root => {
-            // Rank 0 keeps its own rows as they are; the others send theirs.
-            let mut own: Vec<(usize, Vec<Entry>)> = Vec::new();
-            let mut sizes = vec![0usize; k];
-            if me != 0 {
-                sizes[0] = rows.iter().map(|r| row_bytes(r.len())).sum();
+    // Target::Blocks. Stored entries per full row, to cut balanced contiguous blocks.
+    let mut weight = vec![0u64; n];
+    for (&i, r) in mine.iter().zip(&rows) {
+        weight[i] += r.len() as u64;
+        if upper {
+            for e in r {
+                weight[e.j as usize] += 1;
             }
-            let mut send = Packed::zeroed(&sizes);
-            if me == 0 {
-                own = mine.iter().copied().zip(rows).collect();
-            } else {
-                let mut at = 0;
-                let buf = send.part_mut(0);
-                for (&i, r) in mine.iter().zip(rows) {
-                    at = put_row(buf, at, i, &r);
-                }
-            }
-            report.pack_seconds = t_pack.elapsed().as_secs_f64();
-            let got = exchange_timed(cluster, send, &mut report)?;
-            let tr: Traffic = cluster.traffic() - traffic0;
-            (report.sent, report.received) = (tr.sent, tr.received);
-            // Every rank's report now, before rank 0 assembles alone: the others are done.
-            let mut ranks = report.gather(cluster)?;
-            if me != 0 {
-                return Ok((Share::Elsewhere, ranks));
-            }
-            // Unpacked in parallel (rank 0's pool has the node's threads by now).
-            let t = Instant::now();
-            let parts = index_parts(cluster, &got, n)?;
-            let decoded: Vec<Option<(usize, Vec<Entry>)>> = parts
-                .par_iter()
-                .map(|&(i, src, at)| {
-                    let mut es = Vec::new();
-                    decode_part(&got.part(src)[at..], n, &mut es).map(|()| (i, es))
-                })
-                .collect();
-            drop(got);
-            let mut all: Vec<Option<Vec<Entry>>> = vec![None; n];
-            for (i, r) in own {
-                all[i] = Some(r);
-            }
-            for d in decoded {
-                let Some((i, es)) = d else {
-                    return Err(cluster.fail("a column past the patch count in the rows".into()));
-                };
-                if all[i].is_some() {
-                    return Err(cluster.fail(format!("row {i} came twice")));
-                }
-                all[i] = Some(es);
-            }
-            if let Some(i) = all.iter().position(Option::is_none) {
-                return Err(cluster.fail(format!("row {i} came from no rank")));
-            }
-            let rows: Vec<Vec<Entry>> = all.into_iter().map(Option::unwrap_or_default).collect();
-            ranks[0].exchange_seconds += t.elapsed().as_secs_f64();
-            let t = Instant::now();
-            let ff = assemble(ctx, est, rows, all_rays, start.elapsed().as_secs_f64());
-            ranks[0].assembly_seconds = t.elapsed().as_secs_f64();
-            return Ok((Share::Whole(ff), ranks));
         }
-        Target::Blocks => {
-            // Stored entries per full row, to cut balanced contiguous blocks.
-            let mut weight = vec![0u64; n];
-            for (&i, r) in mine.iter().zip(&rows) {
-                weight[i] += r.len() as u64;
-                if upper {
-                    for e in r {
-                        weight[e.j as usize] += 1;
-                    }
-                }
+    }
+    cluster.all_sum_u64(&mut weight)?;
+    let bounds = blocks(&weight, k);
+    drop(weight);
+    let block_of = |x: usize| bounds.partition_point(|&b| b <= x) - 1;
+    // Each row to the rank of its row; the parts whose columns fall in another
+    // rank's block (their mirrors or back entries live there) to that rank too;
+    // this rank's own parts into its own buffer, read back like the others.
+    // The parts of row i: (destination, range of its entries).
+    let parts = |i: usize, r: &[Entry], f: &mut dyn FnMut(usize, std::ops::Range<usize>)| {
+        let home = block_of(i);
+        let mut at = 0;
+        while at < r.len() {
+            let d = block_of(r[at].j as usize);
+            let end = at + r[at..].partition_point(|e| (e.j as usize) < bounds[d + 1]);
+            if d != home {
+                f(d, at..end);
             }
-            cluster.all_sum_u64(&mut weight)?;
-            let bounds = blocks(&weight, k);
-            drop(weight);
-            let block_of = |x: usize| bounds.partition_point(|&b| b <= x) - 1;
-            // Each row to the rank of its row; the parts whose columns fall in another
-            // rank's block (their mirrors or back entries live there) to that rank too;
-            // this rank's own parts into its own buffer, read back like the others.
-            // The parts of row i: (destination, range of its entries).
-            let parts =
-                |i: usize, r: &[Entry], f: &mut dyn FnMut(usize, std::ops::Range<usize>)| {
-                    let home = block_of(i);
-                    let mut at = 0;
-                    while at < r.len() {
-                        let d = block_of(r[at].j as usize);
-                        let end = at + r[at..].partition_point(|e| (e.j as usize) < bounds[d + 1]);
-                        if d != home {
-                            f(d, at..end);
-                        }
-                        at = end;
-                    }
-                    f(home, 0..r.len());
-                };
-            // Sized first, then written in place.
-            let mut bytes = vec![0usize; k];
-            for (&i, r) in mine.iter().zip(&rows) {
-                parts(i, r, &mut |d, range| bytes[d] += row_bytes(range.len()));
-            }
-            let mut send = Packed::zeroed(&bytes);
-            let mut at = send.offsets.clone();
-            for (&i, r) in mine.iter().zip(rows) {
-                parts(i, &r, &mut |d, range| {
-                    at[d] = put_row(&mut send.data, at[d], i, &r[range]);
-                });
-            }
-            report.pack_seconds = t_pack.elapsed().as_secs_f64();
-            let got = exchange_timed(cluster, send, &mut report)?;
-            let t = Instant::now();
-            // Every part received, by row: the rank that computed a row sends each rank
-            // one part of it at most (the whole row to its home, the columns of their
-            // blocks to the others).
-            let parts = index_parts(cluster, &got, n)?;
-            let area = &ctx.patches.area;
-            let mut b = BlockBuilder::new(bounds[me], bounds[me + 1], upper, area);
-            let mut entries = Vec::new();
-            let bad = || cluster.fail("a column past the patch count in the rows".into());
-            for &(i, src, at) in &parts {
-                decode_part(&got.part(src)[at..], n, &mut entries).ok_or_else(bad)?;
-                b.count(i, &entries);
-            }
-            for &(i, src, at) in &parts {
-                decode_part(&got.part(src)[at..], n, &mut entries).ok_or_else(bad)?;
-                b.fill(i, &entries);
-            }
-            drop(got);
-            let block = in_pool(cluster.compute_pool(), || b.finish());
-            report.assembly_seconds = t.elapsed().as_secs_f64();
-            Share::Block(block, all_rays)
+            at = end;
         }
+        f(home, 0..r.len());
     };
+    // Sized first, then written in place.
+    let mut bytes = vec![0usize; k];
+    for (&i, r) in mine.iter().zip(&rows) {
+        parts(i, r, &mut |d, range| bytes[d] += row_bytes(range.len()));
+    }
+    let mut send = Packed::zeroed(&bytes);
+    let mut at = send.offsets.clone();
+    for (&i, r) in mine.iter().zip(rows) {
+        parts(i, &r, &mut |d, range| {
+            at[d] = put_row(&mut send.data, at[d], i, &r[range]);
+        });
+    }
+    report.pack_seconds = t_pack.elapsed().as_secs_f64();
+    let got = exchange_timed(cluster, send, &mut report)?;
+    let t = Instant::now();
+    // Every part received, by row: the rank that computed a row sends each rank
+    // one part of it at most (the whole row to its home, the columns of their
+    // blocks to the others).
+    let parts = index_parts(cluster, &got, n)?;
+    let area = &ctx.patches.area;
+    let mut b = BlockBuilder::new(bounds[me], bounds[me + 1], upper, area);
+    let mut entries = Vec::new();
+    let bad = || cluster.fail("a column past the patch count in the rows".into());
+    for &(i, src, at) in &parts {
+        decode_part(&got.part(src)[at..], n, &mut entries).ok_or_else(bad)?;
+        b.count(i, &entries);
+    }
+    for &(i, src, at) in &parts {
+        decode_part(&got.part(src)[at..], n, &mut entries).ok_or_else(bad)?;
+        b.fill(i, &entries);
+    }
+    drop(got);
+    let block = in_pool(cluster.compute_pool(), || b.finish());
+    report.assembly_seconds = t.elapsed().as_secs_f64();
+    let share = Share::Block(block, all_rays);
     let tr: Traffic = cluster.traffic() - traffic0;
     report.sent = tr.sent;
     report.received = tr.received;
     Ok((share, vec![report]))
 }
 
-/// The whole matrix from every row (`rows[i]` as [`rows_par`] leaves it), assembled as
-/// [`super::compute_timed`] assembles it.
-fn assemble(
+/// The smallest chunk of rows [`deal_chunks`] makes, as a fraction of the whole cost
+/// over the ranks (`1 / (MIN_CHUNK_PARTS x ranks)`): small enough that the ranks finish
+/// within about one such chunk of each other, large enough that a chunk's two messages
+/// and its row bookkeeping are nothing beside its rows.
+const MIN_CHUNK_PARTS: f64 = 128.0;
+
+/// Largest message of rows sent to rank 0 (MPI counts are `int`s), unless one row is
+/// longer.
+const MESSAGE_BYTES: usize = 1 << 30;
+
+/// Rows `0..n` cut into consecutive chunks for [`gather_on_root`], by estimated cost
+/// (`costs` by row), guided self-scheduling (Polychronopoulos and Kuck, 1987): each
+/// chunk holds a quarter of the remaining cost over the `ranks`, and at least
+/// `1 / (MIN_CHUNK_PARTS x ranks)` of the whole, so that the first chunks are large (few
+/// messages) and the last small (the ranks end together). The same on every rank.
+fn deal_chunks(costs: &[f64], ranks: usize) -> Vec<std::ops::Range<usize>> {
+    let key = |c: f64| if c.is_finite() { c.max(0.0) } else { 0.0 };
+    let total: f64 = costs.iter().map(|&c| key(c)).sum();
+    let floor = total / (MIN_CHUNK_PARTS * ranks as f64);
+    let mut chunks = Vec::new();
+    let (mut lo, mut left) = (0, total);
+    while lo < costs.len() {
+        let want = (left / (4.0 * ranks as f64)).max(floor);
+        let (mut hi, mut sum) = (lo, 0.0);
+        while hi < costs.len() && (hi == lo || sum + key(costs[hi]) <= want) {
+            sum += key(costs[hi]);
+            hi += 1;
+        }
+        chunks.push(lo..hi);
+        left -= sum;
+        lo = hi;
+    }
+    chunks
+}
+
+/// What a rank other than 0 sends rank 0 in [`gather_on_root`]: a message starts with
+/// its kind.
+const ASK: u32 = 0;
+/// Row parts follow ([module docs](self), wire format).
+const ROWS: u32 = 1;
+/// Rank 0's answer to [`ASK`]: 8 bytes, the chunk's index, or `u64::MAX` for none left.
+const NONE_LEFT: u64 = u64::MAX;
+
+/// [`Target::Root`]: every rank computes chunks of rows (`deal_chunks`) on its compute
+/// threads while its main thread talks to rank 0, which deals the chunks out as they are
+/// asked for (dynamic scheduling: a rank that is slower, sharing its core or doing rank
+/// 0's receiving, simply computes fewer) and receives the finished rows while computing
+/// its own, so that the transfer overlaps the rows instead of following them. A rank
+/// keeps up to two chunks queued for its threads, so that they never wait for an
+/// answer. Rank 0 keeps the received bytes and assembles straight from them. Every
+/// rank's report is gathered before rank 0 assembles the matrix.
+fn gather_on_root(
     ctx: &Context,
     est: &dyn Estimator,
-    rows: Vec<Vec<Entry>>,
+    cluster: &dyn Cluster,
+    (chunks, costs): (&[std::ops::Range<usize>], &[f64]),
+    mut report: RankReport,
+    (start, traffic0): (Instant, Traffic),
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<(Share, Vec<RankReport>)> {
+    let (n, k, me) = (ctx.patches.len(), cluster.size(), cluster.rank());
+    let upper = est.upper_only();
+    let stop = AtomicBool::new(false);
+    let rows_done: OnceLock<(Instant, f64)> = OnceLock::new();
+    // Chunks to compute here (from rank 0's answers; rank 0 takes its own from `next`),
+    // and the rows computed, to the main thread.
+    let (job_tx, job_rx) = std::sync::mpsc::channel::<usize>();
+    let (row_tx, row_rx) = std::sync::mpsc::channel::<(usize, Vec<Vec<Entry>>, u64)>();
+    let next = AtomicUsize::new(0);
+    let (t_rows, cpu) = (Instant::now(), crate::cluster::cpu_seconds());
+    let done = AtomicU64::new(0);
+    // Rank 0: where each row is (received messages, or its own rows).
+    let mut received: Vec<Vec<u8>> = Vec::new();
+    let mut at_root: Vec<Option<Place>> = if me == 0 {
+        (0..n).map(|_| None).collect()
+    } else {
+        Vec::new()
+    };
+    let (mut rays, mut entries, mut mine) = (0u64, 0u64, Vec::new());
+    let mut take = |c: usize, rows: &Vec<Vec<Entry>>, r: u64| {
+        rays += r;
+        entries += rows.iter().map(|r| r.len() as u64).sum::<u64>();
+        mine.push(c);
+    };
+    let talk = || -> Result<()> {
+        // Dropped when this returns: the compute threads then stop asking.
+        let job_tx = job_tx;
+        if me != 0 {
+            let ask = || -> Result<Option<usize>> {
+                cluster.send(0, &ASK.to_le_bytes())?;
+                let (from, answer) = cluster.receive_any()?;
+                match <[u8; 8]>::try_from(&answer[..]) {
+                    Ok(b) if from == 0 => {
+                        let c = u64::from_le_bytes(b);
+                        Ok((c != NONE_LEFT).then_some(c as usize))
+                    }
+                    _ => Err(cluster.fail(format!(
+                        "an answer of {} bytes from rank {from}",
+                        answer.len()
+                    ))),
+                }
+            };
+            let (mut queued, mut exhausted) = (0, false);
+            loop {
+                while queued < 2 && !exhausted {
+                    match ask()? {
+                        Some(c) if c < chunks.len() => {
+                            let _ = job_tx.send(c);
+                            queued += 1;
+                        }
+                        Some(c) => {
+                            return Err(cluster.fail(format!("chunk {c} of {}", chunks.len())))
+                        }
+                        None => exhausted = true,
+                    }
+                }
+                if queued == 0 {
+                    return Ok(());
+                }
+                let Ok((c, rows, r)) = row_rx.recv() else {
+                    return Err(cluster.fail("the rows stopped before the last chunk".into()));
+                };
+                queued -= 1;
+                take(c, &rows, r);
+                // Messages of whole rows, each under MESSAGE_BYTES when rows allow.
+                let ids = chunks[c].clone();
+                let mut lo = 0;
+                while lo < rows.len() {
+                    let t = Instant::now();
+                    let mut bytes = 4 + row_bytes(rows[lo].len());
+                    let mut hi = lo + 1;
+                    while hi < rows.len() && bytes + row_bytes(rows[hi].len()) <= MESSAGE_BYTES {
+                        bytes += row_bytes(rows[hi].len());
+                        hi += 1;
+                    }
+                    let mut buf = vec![0u8; bytes];
+                    buf[..4].copy_from_slice(&ROWS.to_le_bytes());
+                    let mut at = 4;
+                    for (i, r) in ids.clone().skip(lo).zip(&rows[lo..hi]) {
+                        at = put_row(&mut buf, at, i, r);
+                    }
+                    report.pack_seconds += t.elapsed().as_secs_f64();
+                    let t = Instant::now();
+                    cluster.send(0, &buf)?;
+                    report.exchange_seconds += t.elapsed().as_secs_f64();
+                    lo = hi;
+                }
+            }
+        }
+        // Rank 0: deal chunks, place rows, until every row is here and every other rank
+        // has been told that none is left.
+        let (mut missing, mut told) = (n, 0);
+        let mut nap = crate::cluster::NAP_FIRST;
+        while missing > 0 || told + 1 < k {
+            let mut busy = false;
+            while let Ok((c, rows, r)) = row_rx.try_recv() {
+                take(c, &rows, r);
+                for (i, r) in chunks[c].clone().zip(rows) {
+                    if at_root[i].is_some() {
+                        return Err(cluster.fail(format!("row {i} came twice")));
+                    }
+                    at_root[i] = Some(Place::Own(r));
+                    missing -= 1;
+                }
+                busy = true;
+            }
+            let t = Instant::now();
+            let got = if k > 1 { cluster.try_receive()? } else { None };
+            report.exchange_seconds += t.elapsed().as_secs_f64();
+            if let Some((src, bytes)) = got {
+                busy = true;
+                let t = Instant::now();
+                let kind = bytes.get(..4).map(word);
+                if kind == Some(ASK) {
+                    let c = next.fetch_add(1, Ordering::Relaxed);
+                    let answer = if c < chunks.len() {
+                        c as u64
+                    } else {
+                        NONE_LEFT
+                    };
+                    told += usize::from(answer == NONE_LEFT);
+                    cluster.send(src, &answer.to_le_bytes())?;
+                } else if kind == Some(ROWS) {
+                    let (mut bad, mut placed) = (None, 0);
+                    each_part(cluster, &bytes[4..], n, |i, at| {
+                        if bad.is_some() {
+                            return;
+                        }
+                        if !check_part(&bytes[4 + at..], i, n, upper) {
+                            bad = Some(format!(
+                                "malformed row {i} from rank {src}: a column past the patch \
+                                 count, out of order, or (upper triangle) not past the row"
+                            ));
+                        } else if at_root[i].is_some() {
+                            bad = Some(format!("row {i} came twice"));
+                        } else {
+                            at_root[i] = Some(Place::Received(received.len(), 4 + at));
+                            missing -= 1;
+                            placed += 1;
+                        }
+                    })?;
+                    if let Some(msg) = bad {
+                        return Err(cluster.fail(msg));
+                    }
+                    progress(done.fetch_add(placed, Ordering::Relaxed) + placed);
+                    received.push(bytes);
+                } else {
+                    return Err(cluster.fail(format!(
+                        "a message of {} bytes from rank {src}",
+                        bytes.len()
+                    )));
+                }
+                report.pack_seconds += t.elapsed().as_secs_f64();
+            }
+            if busy {
+                nap = crate::cluster::NAP_FIRST;
+            } else {
+                std::thread::sleep(nap);
+                nap = (nap * 2).min(crate::cluster::NAP_LAST);
+            }
+        }
+        Ok(())
+    };
+    let talked = in_place_scope_in(cluster.compute_pool(), |s| {
+        let (stop, rows_done, done, next) = (&stop, &rows_done, &done, &next);
+        let total = n as u64;
+        s.spawn(move |_| {
+            let job = || {
+                if me == 0 {
+                    let c = next.fetch_add(1, Ordering::Relaxed);
+                    (c < chunks.len()).then_some(c)
+                } else {
+                    job_rx.recv().ok()
+                }
+            };
+            while let Some(c) = job() {
+                if stop.load(Ordering::Relaxed) {
+                    break;
+                }
+                let (rows, r) = rows_par(ctx, est, chunks[c].clone(), done, total, progress);
+                if row_tx.send((c, rows, r)).is_err() {
+                    break;
+                }
+            }
+            let _ = rows_done.set((Instant::now(), crate::cluster::cpu_seconds()));
+        });
+        let r = talk();
+        if r.is_err() {
+            stop.store(true, Ordering::Relaxed);
+        }
+        r
+    });
+    talked?;
+    let end = Instant::now();
+    if let Some(&(t, c)) = rows_done.get() {
+        report.rows_seconds = t.duration_since(t_rows).as_secs_f64();
+        report.rows_cpu_seconds = c - cpu;
+        report.wait_seconds = end.duration_since(t).as_secs_f64();
+    }
+    mine.sort_unstable();
+    let total: f64 = costs.iter().sum();
+    let my_cost: f64 = mine
+        .iter()
+        .flat_map(|&c| chunks[c].clone())
+        .map(|i| costs[i])
+        .sum();
+    report.cost_share = if total > 0.0 { my_cost / total } else { 0.0 };
+    report.rows = mine.iter().map(|&c| chunks[c].len()).sum();
+    report.rays = rays;
+    report.entries = entries;
+    let mut counters = [rays];
+    cluster.all_sum_u64(&mut counters)?;
+    let all_rays = counters[0];
+    let tr: Traffic = cluster.traffic() - traffic0;
+    (report.sent, report.received) = (tr.sent, tr.received);
+    // Every rank's report now, before rank 0 assembles alone: the others are done.
+    let mut ranks = report.gather(cluster)?;
+    if me != 0 {
+        return Ok((Share::Elsewhere, ranks));
+    }
+    let t = Instant::now();
+    let mut rows = Vec::with_capacity(n);
+    for (i, p) in at_root.into_iter().enumerate() {
+        rows.push(match p {
+            None => return Err(cluster.fail(format!("row {i} came from no rank"))),
+            Some(Place::Own(r)) => GatheredRow::Own(r),
+            Some(Place::Received(m, at)) => GatheredRow::Wire(&received[m][at..]),
+        });
+    }
+    let ff = assemble(ctx, est, rows, all_rays, start.elapsed().as_secs_f64());
+    ranks[0].assembly_seconds = t.elapsed().as_secs_f64();
+    Ok((Share::Whole(ff), ranks))
+}
+
+/// Where rank 0 holds row `i` of a gather: computed there, or in a received message
+/// (`(message, offset of the row's header)`).
+enum Place {
+    Own(Vec<Entry>),
+    Received(usize, usize),
+}
+
+/// A row of a gather as the assembly reads it on rank 0: computed there, or the bytes
+/// of the row part another rank sent, from its header on (checked by [`check_part`]),
+/// read in place.
+enum GatheredRow<'a> {
+    Own(Vec<Entry>),
+    Wire(&'a [u8]),
+}
+
+impl RowEntries for GatheredRow<'_> {
+    fn len(&self) -> usize {
+        match self {
+            GatheredRow::Own(r) => r.len(),
+            GatheredRow::Wire(b) => word(&b[4..8]) as usize,
+        }
+    }
+
+    fn at(&self, k: usize) -> Entry {
+        match self {
+            GatheredRow::Own(r) => r[k],
+            GatheredRow::Wire(b) => wire_entry(&b[8 + 20 * k..8 + 20 * (k + 1)]),
+        }
+    }
+}
+
+/// A little-endian `u32`.
+fn word(b: &[u8]) -> u32 {
+    u32::from_le_bytes([b[0], b[1], b[2], b[3]])
+}
+
+/// The entry of a 20-byte wire record ([module docs](self)).
+fn wire_entry(rec: &[u8]) -> Entry {
+    let f64_at = |o: usize| {
+        let mut b = [0u8; 8];
+        b.copy_from_slice(&rec[o..o + 8]);
+        f64::from_bits(u64::from_le_bytes(b))
+    };
+    Entry {
+        j: word(rec),
+        f: f64_at(4),
+        se: f64_at(12),
+    }
+}
+
+/// True when the row part whose header starts `buf` (found by [`each_part`], row `i`)
+/// has its columns under `n` and increasing, and past `i` when only the upper triangle is
+/// sent: what the assembly relies on.
+fn check_part(buf: &[u8], i: usize, n: usize, upper: bool) -> bool {
+    let len = word(&buf[4..8]) as usize;
+    let mut last: Option<u32> = None;
+    buf[8..8 + 20 * len].chunks_exact(20).all(|rec| {
+        let j = word(rec);
+        let ok = (j as usize) < n && last.is_none_or(|l| l < j) && (!upper || j as usize > i);
+        last = Some(j);
+        ok
+    })
+}
+
+/// `f` on the calling thread inside a scope whose spawned work runs on `pool` (the
+/// global pool when `None`): `rayon::in_place_scope` there.
+fn in_place_scope_in<'s, T>(
+    pool: Option<&rayon::ThreadPool>,
+    f: impl FnOnce(&rayon::Scope<'s>) -> T,
+) -> T {
+    match pool {
+        Some(p) => p.in_place_scope(f),
+        None => rayon::in_place_scope(f),
+    }
+}
+
+/// The whole matrix from every row (`rows[i]` as [`rows_par`] leaves it), assembled as
+/// [`super::compute_timed`] assembles it.
+fn assemble<R: RowEntries>(
+    ctx: &Context,
+    est: &dyn Estimator,
+    rows: Vec<R>,
     rays: u64,
     seconds: f64,
 ) -> FormFactors {
@@ -503,7 +824,7 @@ fn assemble(
     let csr = if est.upper_only() {
         CsrBuilder::from_upper(&rows, area)
     } else {
-        let nnz: usize = rows.iter().map(Vec::len).sum();
+        let nnz: usize = rows.iter().map(R::len).sum();
         let mut csr = CsrBuilder::with_capacity(rows.len(), 0);
         csr.reserve_exact(nnz);
         csr.push_rows(&rows);
@@ -559,6 +880,27 @@ mod tests {
         assert_eq!(blocks(&[5, 5, 5, 5], 2), vec![0, 2, 4]);
         assert_eq!(blocks(&[0; 3], 4), vec![0, 0, 1, 2, 3]);
         assert_eq!(blocks(&[], 2), vec![0, 0, 0]);
+    }
+
+    /// Chunks cover every row once, in order; they shrink (guided self-scheduling) to a
+    /// floor, and there are few of them.
+    #[test]
+    fn chunks_cover_the_rows_and_shrink() {
+        let costs: Vec<f64> = (0..6144).map(|i| (6144 - i) as f64).collect();
+        for k in 1..=4 {
+            let chunks = deal_chunks(&costs, k);
+            assert_eq!(chunks[0].start, 0);
+            assert_eq!(chunks.last().unwrap().end, costs.len());
+            assert!(chunks.windows(2).all(|w| w[0].end == w[1].start));
+            let cost = |c: &std::ops::Range<usize>| costs[c.clone()].iter().sum::<f64>();
+            let total: f64 = costs.iter().sum();
+            // The first holds a quarter of the whole over the ranks, the last little.
+            assert!((cost(&chunks[0]) / total - 0.25 / k as f64).abs() < 0.01, "{k}");
+            assert!(cost(chunks.last().unwrap()) < 2.0 * total / (MIN_CHUNK_PARTS * k as f64));
+            assert!(chunks.len() < 64 * k, "{k}: {}", chunks.len());
+        }
+        assert!(deal_chunks(&[], 2).is_empty());
+        assert_eq!(deal_chunks(&[0.0; 5], 2), vec![0..5]);
     }
 
     fn scene(name: &str, edge: f64) -> PatchSet {
