@@ -895,7 +895,10 @@ mod tests {
             let cost = |c: &std::ops::Range<usize>| costs[c.clone()].iter().sum::<f64>();
             let total: f64 = costs.iter().sum();
             // The first holds a quarter of the whole over the ranks, the last little.
-            assert!((cost(&chunks[0]) / total - 0.25 / k as f64).abs() < 0.01, "{k}");
+            assert!(
+                (cost(&chunks[0]) / total - 0.25 / k as f64).abs() < 0.01,
+                "{k}"
+            );
             assert!(cost(chunks.last().unwrap()) < 2.0 * total / (MIN_CHUNK_PARTS * k as f64));
             assert!(chunks.len() < 64 * k, "{k}: {}", chunks.len());
         }
