@@ -1005,10 +1005,15 @@ pub fn factors_on(
     else {
         return Ok(None);
     };
-    let diagnostics = timer.run("diagnostics", 0, || ff.diagnostics());
-    let provenance = timer.run("write", 0, || {
-        store::write(job.out_dir, &patches, &ff, job.repair, job.format)
-    })?;
+    // Side by side: the diagnostics are parallel arithmetic over the matrix, the write
+    // (three large files, then their hashes) leaves cores idle while a file finishes.
+    let (diagnostics, provenance) = timer.run("diagnostics and write", 0, || {
+        rayon::join(
+            || ff.diagnostics(),
+            || store::write(job.out_dir, &patches, &ff, job.repair, job.format),
+        )
+    });
+    let provenance = provenance?;
     let warnings = warnings
         .into_iter()
         .chain(blind_warning(blind_patches(&patches, &ff), patches.len()))
