@@ -641,15 +641,20 @@ fn bake_gathered(
     else {
         return Ok(None);
     };
-    let (diagnostics, max_row_sum_bar) = timer.run("diagnostics", 0, || {
-        let worst = (0..ff.len())
-            .map(|i| ff.row_sum_bar(i))
-            .fold(crate::matrix::Bar::ZERO, crate::matrix::Bar::max);
-        (ff.diagnostics(), worst)
+    // Side by side: the diagnostics are parallel reads of the matrix, and the default
+    // solver's sweeps (Gauss-Seidel) are sequential, leaving the other cores idle.
+    let (solved, (diagnostics, max_row_sum_bar)) = timer.run("solve and diagnostics", 0, || {
+        rayon::join(
+            || solve_radiosity(&patches, &ff, cfg.method, &cfg.solve),
+            || {
+                let worst = (0..ff.len())
+                    .map(|i| ff.row_sum_bar(i))
+                    .fold(crate::matrix::Bar::ZERO, crate::matrix::Bar::max);
+                (ff.diagnostics(), worst)
+            },
+        )
     });
-    let (b, report) = timer.run("solve", 0, || {
-        solve_radiosity(&patches, &ff, cfg.method, &cfg.solve)
-    })?;
+    let (b, report) = solved?;
     check_storable(&scene, &b)?;
     let verts = timer.run("per-vertex", 0, || {
         output::interpolate(&patches, &b, cfg.crease_deg)
