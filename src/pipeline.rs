@@ -1226,7 +1226,7 @@ fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
     let (em, ab) = (lum(h.emitted), lum(h.absorbed));
     let _ = writeln!(
         o,
-        "  estimated error per leaf: max {:.2e}, mean {:.2e} of the mean radiosity {:.4e} (link tolerance {:.2e}); {} links at the minimum area {:.3e} still over it",
+        "  estimated error per leaf (its factors' bars carried through the interreflections): max {:.2e}, mean {:.2e} of the mean radiosity {:.4e} (link tolerance {:.2e}); {} links at the minimum area {:.3e} still over it",
         h.max_error, h.mean_error, h.mean_radiosity, h.eps, h.unresolved, h.min_area
     );
     let _ = writeln!(

@@ -109,6 +109,10 @@ pub struct Gather {
     /// added linearly, their visibility standard errors in quadrature:
     /// [`crate::matrix::Bar`]).
     pub row_sum: Vec<(f64, crate::matrix::Bar)>,
+    /// Per leaf: the error bar of its reflected irradiance `ρ_l H_l` that its factors'
+    /// bars allow (as `row_sum`'s, each entry weighted by `max over channels of ρ_l B_s`,
+    /// with the radiosity the lists were built from).
+    pub carried: Vec<crate::matrix::Bar>,
 }
 
 impl Gather {
