@@ -110,9 +110,11 @@ impl Packed {
     }
 }
 
-/// The processes of one run, and the few collective operations the distributed stages
-/// need. Only [`Cluster::exchange`] must be implemented; the others have defaults built
-/// on it (an implementation may replace them by native collectives with the same result).
+/// The processes of one run, and the few operations the distributed stages need. Of the
+/// collectives only [`Cluster::exchange`] must be implemented; the others have defaults
+/// built on it (an implementation may replace them by native collectives with the same
+/// result). The point-to-point [`Cluster::send`] and [`Cluster::try_receive`] must be
+/// implemented too ([`Cluster::receive_any`] waits on the latter).
 pub trait Cluster {
     /// This process's rank, `0..size`.
     fn rank(&self) -> usize;
