@@ -333,7 +333,16 @@ pub fn visible_fraction(ctx: &Context, r: u32, s: u32, open: Option<f64>) -> See
 /// stream for each `n`).
 pub fn visible_fraction_n(ctx: &Context, r: u32, s: u32, n: usize, open: Option<f64>) -> Seen {
     let tag = if n == ctx.rays { 0 } else { n as u64 };
-    visible_fraction_keyed(ctx, r, s, n, tag, open)
+    visible_fraction_keyed(ctx, r, s, n, tag, open, false)
+}
+
+/// [`visible_fraction_n`] (the same rays) from a partly buried leaf `r`: its rays from
+/// points inside the solid are blocked, or face away from `s` and are not cast, as
+/// expected, so neither every ray blocked nor no ray cast shows the pair hidden, and the
+/// control variate's estimate is kept (1 where no ray was cast: no blocked kernel).
+pub fn visible_fraction_partly(ctx: &Context, r: u32, s: u32, n: usize, open: Option<f64>) -> Seen {
+    let tag = if n == ctx.rays { 0 } else { n as u64 };
+    visible_fraction_keyed(ctx, r, s, n, tag, open, true)
 }
 
 /// Stream tag of [`visible_fraction_again`].
@@ -343,7 +352,7 @@ const AGAIN: u64 = 1 << 40;
 /// ([`evaluate`]): a fresh estimate for a link whose first estimate took part in deciding
 /// that it is kept.
 pub fn visible_fraction_again(ctx: &Context, r: u32, s: u32, open: Option<f64>) -> Seen {
-    visible_fraction_keyed(ctx, r, s, ctx.rays, AGAIN, open)
+    visible_fraction_keyed(ctx, r, s, ctx.rays, AGAIN, open, false)
 }
 
 /// The weight of the segment from `x` to `y` (each a point, its surface normal and the area
@@ -365,6 +374,7 @@ fn visible_fraction_keyed(
     n: usize,
     tag: u64,
     open: Option<f64>,
+    partly: bool,
 ) -> Seen {
     let e = ctx.elements;
     let (nr, ns) = (e.normal[r as usize], e.normal[s as usize]);
@@ -406,7 +416,13 @@ fn visible_fraction_keyed(
         weights.push(w);
         segs.push(ctx.vis.segment_ray(x, nr, y, ns));
     }
-    if segs.is_empty() {
+    let mean = match open {
+        // The kernel's exact mean, for the control variate.
+        Some(f) if whole && f > 0.0 => std::f64::consts::PI * e.area[r as usize] * f,
+        _ => 0.0,
+    };
+    let partly = partly && mean > 0.0;
+    if segs.is_empty() && !partly {
         return Seen { v: 0.0, rays: 0 };
     }
     let mut free = vec![false; segs.len()];
@@ -421,12 +437,7 @@ fn visible_fraction_keyed(
             any_blocked = true;
         }
     }
-    let mean = match open {
-        // The kernel's exact mean, for the control variate.
-        Some(f) if whole && f > 0.0 => std::f64::consts::PI * e.area[r as usize] * f,
-        _ => 0.0,
-    };
-    let v = if !free.iter().any(|&f| f) {
+    let v = if !partly && !free.iter().any(|&f| f) {
         // Every ray blocked: hidden, as the rays say (not the control variate's noise).
         0.0
     } else if mean > 0.0 {

@@ -783,8 +783,14 @@ pub fn gather_lists(
                 }
                 // A traced fraction's relative bar: `se(v) / v` on `f v`.
                 let relative = |v: f64, rays: f64| fraction_se(v, rays) / v.max(1e-300);
+                // A partly buried leaf's rays from inside the solid are blocked as expected
+                // (see `link::visible_fraction_partly`).
                 let trace = |cost: &mut Cost| {
-                    let seen = link::visible_fraction(ctx, l, src, Some(f));
+                    let seen = if e.partly[li] {
+                        link::visible_fraction_partly(ctx, l, src, ctx.rays, Some(f))
+                    } else {
+                        link::visible_fraction(ctx, l, src, Some(f))
+                    };
                     cost.rays += seen.rays;
                     (seen.v, relative(seen.v, n), true)
                 };
@@ -797,7 +803,11 @@ pub fn gather_lists(
                         (seen.v, relative(seen.v, n), true)
                     }
                     Sight::TraceWith(m) => {
-                        let seen = link::visible_fraction_n(ctx, l, src, m, Some(f));
+                        let seen = if e.partly[li] {
+                            link::visible_fraction_partly(ctx, l, src, m, Some(f))
+                        } else {
+                            link::visible_fraction_n(ctx, l, src, m, Some(f))
+                        };
                         cost.rays += seen.rays;
                         (seen.v, relative(seen.v, (m * m) as f64), true)
                     }
