@@ -20,17 +20,19 @@
 //! standard error is the standard deviation of the replicate means over `sqrt(R)`.
 //!
 //! Pairs with one patch wholly behind the other's plane are culled without rays; a sample
-//! pair facing away (cos <= 0) contributes 0 without a ray. Each stream is keyed on
-//! `(seed, a, b, replicate)` (substream `replicate` of the pair's `(seed, a, b)` stream,
-//! [`Wy::substream`]), so the result does not depend on the thread count.
+//! pair facing away (cos <= 0) contributes 0 without a ray. Each pair's samples come from
+//! a counter-based stream keyed on `(seed, a, b)` (replicate r takes the words from
+//! `2 r m` on, [`SplitMix`]), so the result does not depend on the thread count.
 //!
 //! The inner loop works in `f32` over all the samples of a pair at once (structure of
 //! arrays): unit-square coordinates with 24 random bits each from a counter-based
-//! [`Wy`] stream, points on both patches, kernel and segment rays; the replicate sums are
-//! accumulated in `f64`. The points are made in `f32` (from corners rounded once from the
-//! f64 geometry) because they are the segment rays' ends, which Embree takes in `f32`; the
-//! kernel's rounding error (a few ulp, about 1e-7 relative) is far below any standard
-//! error. Culling is decided in f64 on the exact corners.
+//! [`SplitMix`] stream (each word a function of the key and its position only, so the words
+//! come out of one vector pass, where wyrand's 128-bit products run one at a time:
+//! docs/PERFORMANCE.md §1), points on both patches, kernel and segment rays; the replicate
+//! sums are accumulated in `f64`. The points are made in `f32` (from corners rounded once
+//! from the f64 geometry) because they are the segment rays' ends, which Embree takes in
+//! `f32`; the kernel's rounding error (a few ulp, about 1e-7 relative) is far below any
+//! standard error. Culling is decided in f64 on the exact corners.
 //!
 //! Patches that share an edge make `cos cos / r²` unbounded: the estimate stays finite and
 //! unbiased but its variance is infinite, and the replicate error bar would say little.
@@ -47,7 +49,7 @@ use std::f64::consts::FRAC_1_PI;
 use std::sync::{Arc, OnceLock};
 
 use crate::mesh::PatchSampler;
-use crate::sampling::{jitter4, Wy};
+use crate::sampling::{jitter4, SplitMix, Wy};
 use crate::visibility::{Offsets, Rays, Segments, Tracer, SEGMENT_TFAR};
 
 /// How points are placed on each patch.
@@ -445,8 +447,8 @@ impl AreaMc {
     }
 
     /// The pair's sample coordinates `(x_u, x_v, y_u, y_v)` in the unit square into
-    /// `s.u[0..4]`, `m` per replicate, each replicate from its own substream `r` of the
-    /// pair's `(seed, a, b)` stream ([`Wy::substream`]).
+    /// `s.u[0..4]`, `m` per replicate, from the pair's `(seed, a, b)` stream ([`AreaMc::words`];
+    /// the Sobol pattern's scrambles from substream `r` of a [`Wy`] stream).
     #[inline(always)]
     fn unit_square(&self, seed: u64, a: usize, b: usize, m: usize, reps: usize, s: &mut Scratch) {
         let len = m * reps;
@@ -484,15 +486,13 @@ impl AreaMc {
         }
     }
 
-    /// Two words per sample pair into `words`, replicate r's `m` pairs from substream `r`
-    /// of the pair's `(seed, a, b)` stream ([`Wy::substream`]).
+    /// Two words per sample pair into `words`, all replicates' from the pair's `(seed, a,
+    /// b)` counter-based stream in one vector pass (replicate r's `m` pairs from word
+    /// `2 r m` on: the words are independent of each other, [`SplitMix`]).
     #[inline(always)]
     fn words(&self, seed: u64, a: usize, b: usize, m: usize, reps: usize, words: &mut Vec<u64>) {
         words.resize(2 * m * reps, 0);
-        let pair = Wy::keyed(seed, a as u64, b as u64, 0);
-        for (r, w) in words.chunks_exact_mut(2 * m).enumerate() {
-            pair.substream(r as u64).fill(w);
-        }
+        SplitMix::keyed(seed, a as u64, b as u64, 0).fill(words);
     }
 
     /// The integer coordinates of the cells of the stratified pattern's 4D grid, last one
