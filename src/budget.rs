@@ -83,8 +83,17 @@ pub fn available() -> Option<u64> {
     Some(kb.saturating_mul(1024))
 }
 
+/// The memory a run may use and where that figure comes from: `--max-memory` when given,
+/// else the available memory; `None` when neither is known (no check then).
+pub fn limit_of(max_memory: Option<u64>) -> Option<(u64, &'static str)> {
+    match max_memory {
+        Some(l) => Some((l, "--max-memory")),
+        None => available().map(|a| (a, "available (MemAvailable in /proc/meminfo)")),
+    }
+}
+
 /// Bytes as GiB with two decimals.
-fn gib(bytes: u64) -> String {
+pub fn gib(bytes: u64) -> String {
     format!("{:.2} GiB", bytes as f64 / (1u64 << 30) as f64)
 }
 
@@ -130,12 +139,8 @@ pub fn check(est: &Estimate, limit: Option<u64>, fit: impl Fn(usize) -> Estimate
             est.patches
         )));
     }
-    let (limit, source) = match limit {
-        Some(l) => (l, "--max-memory"),
-        None => match available() {
-            Some(a) => (a, "available (MemAvailable in /proc/meminfo)"),
-            None => return Ok(()),
-        },
+    let Some((limit, source)) = limit_of(limit) else {
+        return Ok(());
     };
     if est.total() <= limit {
         return Ok(());

@@ -743,6 +743,7 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
                 seed: args.est.seed,
                 clusters: args.hier.clusters == Switch::On,
                 cluster_accuracy: args.hier.cluster_accuracy,
+                max_memory: args.est.max_memory,
                 ..Default::default()
             };
             h.validate()?;

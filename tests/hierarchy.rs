@@ -44,6 +44,67 @@ fn closed_cube_links_sum_to_one_and_the_furnace_holds() {
     }
 }
 
+/// Memory: an unclustered hierarchy whose links between every pair of roots would not fit
+/// is refused before any link is evaluated, naming what would fit; within a small limit
+/// the refinement stops at the links that fit, with a note, and still solves.
+#[test]
+fn the_memory_limit_refuses_or_caps_the_links() {
+    let scene = Scene::load("scenes/room-sphere.obj").expect("scene");
+    let patches = PatchSet::build(&scene, Resolution::DiagonalFraction(0.25)).expect("patches");
+    let vis = Visibility::new(&patches).expect("bvh");
+    let s = Settings {
+        max_memory: Some(64 << 20),
+        ..Settings::default()
+    };
+    let t = std::time::Instant::now();
+    let e = hierarchy::run(&patches, &vis, &s, &|_| {})
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(
+        e.contains("root patches")
+            && e.contains("--clusters on")
+            && e.contains("--max-memory")
+            && e.contains(&format!("{} root patches", patches.len())),
+        "{e}"
+    );
+    // Before any work: the 2,000-odd roots' links would take seconds.
+    assert!(
+        t.elapsed().as_secs_f64() < 5.0,
+        "refused after {:?}",
+        t.elapsed()
+    );
+
+    // The cube: 30 initial links fit; a limit of about 3,000 links stops the refinement.
+    let limit = 3_000 * 2 * std::mem::size_of::<radiosity::hierarchy::link::Link>() as u64;
+    let s = Settings {
+        error: 0.02,
+        min_area: Some(1.0 / 4096.0),
+        max_memory: Some(limit),
+        ..Settings::default()
+    };
+    let (_, sol) = solve("cube", Resolution::Patches(6), &s);
+    let r = &sol.report;
+    assert!(
+        r.notes
+            .iter()
+            .any(|n| n.contains("set by the memory limit")),
+        "notes {:?}",
+        r.notes
+    );
+    assert!(r.links <= 3_000, "links {}", r.links);
+    // Unlimited, the same bake makes more links than the cap.
+    let (_, free) = solve(
+        "cube",
+        Resolution::Patches(6),
+        &Settings {
+            max_memory: None,
+            ..s
+        },
+    );
+    assert!(free.report.links > 3_000, "links {}", free.report.links);
+}
+
 /// Every edge of the output mesh of a watertight input, by position, is shared by exactly
 /// two triangles: no T-vertex cracks.
 #[test]

@@ -42,6 +42,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
+use crate::budget;
 use crate::mesh::PatchSet;
 use crate::sampling::fraction_se;
 use crate::scene::luminance;
@@ -99,6 +100,9 @@ pub struct Settings {
     /// tolerance alone decide; 1 to 3 trade links for agreement with unclustered bakes
     /// (docs/HIERARCHY.md, Clustering).
     pub cluster_accuracy: f64,
+    /// Memory the solution may take (`--max-memory`); `None` for the available memory
+    /// ([`budget::limit_of`]). Checked before the initial links and as links are added.
+    pub max_memory: Option<u64>,
 }
 
 impl Default for Settings {
@@ -118,6 +122,7 @@ impl Default for Settings {
             seed: 1,
             clusters: CLUSTERS,
             cluster_accuracy: f64::INFINITY,
+            max_memory: None,
         }
     }
 }
@@ -359,9 +364,12 @@ pub fn run(
             report.clusters = t.len();
             made.specs
         }
-        None => (0..n)
-            .flat_map(|r| (0..n).filter(move |&t| t != r).map(move |t| (r, t)))
-            .collect(),
+        None => {
+            check_initial_pairs(e.roots, s.max_memory)?;
+            (0..n)
+                .flat_map(|r| (0..n).filter(move |&t| t != r).map(move |t| (r, t)))
+                .collect()
+        }
     };
     let mut links: Vec<Vec<Link>> = vec![Vec::new(); e.len()];
     {
@@ -645,6 +653,57 @@ fn tolerances(
             }
         })
         .collect()
+}
+
+/// Bytes a candidate pair of roots holds while the initial links of an unclustered
+/// hierarchy are evaluated: the pair, its tolerances, its evaluation, and the link kept.
+const BYTES_PER_INITIAL_PAIR: u64 = (std::mem::size_of::<(u32, u32)>()
+    + std::mem::size_of::<Tolerance>()
+    + std::mem::size_of::<(Option<Link>, Cost)>()
+    + std::mem::size_of::<Link>()) as u64;
+
+/// Bytes a link holds in its receiver's list, with room for the list's growth by doubling.
+const BYTES_PER_LINK: u64 = 2 * std::mem::size_of::<Link>() as u64;
+
+/// Refuses, before any link is evaluated, an unclustered hierarchy whose candidate links
+/// between every pair of its `roots` root patches do not fit the memory limit (`max_memory`,
+/// else the available memory): a scene of 10^5 faces would ask for 10^10 of them.
+fn check_initial_pairs(roots: usize, max_memory: Option<u64>) -> crate::Result<()> {
+    let Some((limit, source)) = budget::limit_of(max_memory) else {
+        return Ok(());
+    };
+    let pairs = (roots as u64).saturating_mul(roots.saturating_sub(1) as u64);
+    let bytes = pairs.saturating_mul(BYTES_PER_INITIAL_PAIR);
+    if bytes <= limit {
+        return Ok(());
+    }
+    // The most roots whose pairs fit: n (n - 1) <= limit / bytes per pair.
+    let fit = ((limit / BYTES_PER_INITIAL_PAIR) as f64).sqrt().floor() as u64;
+    Err(crate::Error::Config(format!(
+        "--method hierarchical without clusters starts from a link between every pair of its \
+         {roots} root patches: {pairs} candidate links, about {} to evaluate, more than the {} \
+         {source}; use --clusters on (links between groups of faces), or about {fit} root \
+         patches or fewer (a longer --max-edge, where the scene has fewer faces), or set \
+         --max-memory if the estimate is too pessimistic",
+        budget::gib(bytes),
+        budget::gib(limit)
+    )))
+}
+
+/// The most links the refinement may hold, `now` being held: what fits the memory limit
+/// at [`BYTES_PER_LINK`] each (`--max-memory` for the whole solution, else `now` plus
+/// what the memory available now holds), and [`Settings::max_links`] at most. True when
+/// the memory sets it.
+fn link_cap(s: &Settings, now: usize) -> (usize, bool) {
+    let room = match s.max_memory {
+        Some(limit) => limit / BYTES_PER_LINK,
+        None => budget::available().map_or(u64::MAX, |a| now as u64 + a / BYTES_PER_LINK),
+    };
+    if room < s.max_links as u64 {
+        (room as usize, true)
+    } else {
+        (s.max_links, false)
+    }
 }
 
 /// Evaluates the candidate links `specs` (with absolute factor tolerances `tols`) in
@@ -1059,6 +1118,7 @@ fn refine_links(
     report: &mut Report,
 ) -> usize {
     let mut refined = 0;
+    let (cap, from_memory) = link_cap(s, links.iter().map(Vec::len).sum());
     loop {
         let material = |e: &Elements, k: usize| {
             &patches.materials[patches.material[e.root[k] as usize] as usize]
@@ -1090,10 +1150,14 @@ fn refine_links(
             break;
         }
         let total: usize = links.iter().map(Vec::len).sum();
-        if total + 3 * decisions.len() > s.max_links {
+        if total + 3 * decisions.len() > cap {
+            let why = if from_memory {
+                "set by the memory limit"
+            } else {
+                "the settings' cap"
+            };
             report.notes.push(format!(
-                "refinement stopped at {total} links (cap {}): raise --error or --min-area",
-                s.max_links
+                "refinement stopped at {total} links ({cap}, {why}): raise --error or --min-area"
             ));
             break;
         }
