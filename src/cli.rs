@@ -165,6 +165,13 @@ struct StudyBakesArgs {
     /// Visibility rays per side of the hierarchical bakes' links.
     #[arg(long, default_value_t = 4)]
     link_rays: usize,
+    /// Floor of a receiver's radiosity in its link tolerance, as a share of the mean (see
+    /// `bake --relative-low`).
+    #[arg(long, default_value_t = radiosity::hierarchy::RELATIVE_LOW)]
+    relative_low: f64,
+    /// Cap of a receiver's radiosity in its link tolerance, as a share of the mean.
+    #[arg(long, default_value_t = radiosity::hierarchy::RELATIVE_HIGH)]
+    relative_high: f64,
 }
 
 #[derive(Args, Debug)]
@@ -282,9 +289,19 @@ struct HierarchyArgs {
     /// Radiosity method.
     #[arg(long, value_enum, default_value_t = MethodArg::Flat)]
     method: MethodArg,
-    /// Hierarchical: link tolerance, relative to the scene's mean radiosity.
+    /// Hierarchical: link tolerance, relative to the receiver's radiosity (taken between
+    /// --relative-low and --relative-high times the scene's mean radiosity).
     #[arg(long, default_value_t = 0.01)]
     error: f64,
+    /// Hierarchical: floor of a receiver's radiosity in its link tolerance, as a share of
+    /// the scene's mean radiosity (1, with --relative-high 1: the tolerance is --error
+    /// times the mean for every receiver).
+    #[arg(long, default_value_t = radiosity::hierarchy::RELATIVE_LOW)]
+    relative_low: f64,
+    /// Hierarchical: cap of a receiver's radiosity in its link tolerance, as a share of
+    /// the scene's mean radiosity (inf: none).
+    #[arg(long, default_value_t = radiosity::hierarchy::RELATIVE_HIGH)]
+    relative_high: f64,
     /// Hierarchical: smallest element area (scene units²); default (diagonal / 512)².
     #[arg(long)]
     min_area: Option<f64>,
@@ -733,6 +750,8 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
         MethodArg::Hierarchical => {
             let h = radiosity::hierarchy::Settings {
                 error: args.hier.error,
+                relative_low: args.hier.relative_low,
+                relative_high: args.hier.relative_high,
                 min_area: args.hier.min_area,
                 rays: args.hier.link_rays,
                 tolerance: args.tolerance.min(1e-7),
@@ -872,6 +891,7 @@ fn study_bakes(args: &StudyBakesArgs) -> Result<()> {
         flat: args.flat.clone(),
         errors: args.errors.clone(),
         rays: args.link_rays,
+        relative: (args.relative_low, args.relative_high),
         ..bakes::Settings::full(args.output.clone())
     };
     let (runs, refs) = bakes::run(&settings)?;

@@ -22,8 +22,10 @@
 //! **Tolerances.** `error` is relative to the scene's mean radiosity `B̄` (area-weighted
 //! luminance, first estimated from the emission as `Σ E A / Σ A / (1 - ρ̄)`, then taken from
 //! each solve): a link is refined while it may carry an error above `error × B̄` in the
-//! radiosity it brings. The minimum area defaults to `(d / 512)²` for a scene of diagonal
-//! `d`.
+//! radiosity it brings, or, with `relative_low` below 1 (or `relative_high` above), above
+//! `error` times its receiver's own radiosity between those shares of `B̄`
+//! ([`refine::Relative`]). The minimum area defaults to `(d / 512)²` for a scene of
+//! diagonal `d`.
 //!
 //! **Determinism.** Links are evaluated in parallel but elements are created on one
 //! thread, in the order of the decisions (which are collected in element order), and
@@ -51,11 +53,17 @@ use blockers::Blockers;
 use clusters::{Links, Refiner, Tree};
 use element::Elements;
 use link::{Context, Cost, Link, Tolerance};
-use refine::{Decision, Oracle};
+use refine::{Decision, Oracle, Relative};
 use solve::{Gather, Materials, SolveStats, State};
 
 /// Default [`Settings::hide`].
 pub const HIDE: f64 = 0.1;
+
+/// Default [`Settings::relative_low`].
+pub const RELATIVE_LOW: f64 = 1.0;
+
+/// Default [`Settings::relative_high`].
+pub const RELATIVE_HIGH: f64 = 1.0;
 
 /// Default [`Settings::clusters`].
 pub const CLUSTERS: bool = false;
@@ -63,8 +71,14 @@ pub const CLUSTERS: bool = false;
 /// Settings of a hierarchical solution.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Settings {
-    /// Link tolerance, relative to the mean radiosity.
+    /// Link tolerance, relative to the receiver's radiosity between `relative_low` and
+    /// `relative_high` times the mean radiosity ([`Relative`]).
     pub error: f64,
+    /// Floor of a receiver's radiosity in its link tolerance, as a share of the mean
+    /// radiosity (1 with `relative_high` 1: the absolute tolerance `error × mean`).
+    pub relative_low: f64,
+    /// Cap of a receiver's radiosity in its link tolerance, as a share of the mean.
+    pub relative_high: f64,
     /// Smallest element area (scene units²); `None` for `(diagonal / 512)²`.
     pub min_area: Option<f64>,
     /// Visibility strata per side: `rays²` rays per link that is not provably unoccluded.
@@ -109,6 +123,8 @@ impl Default for Settings {
     fn default() -> Self {
         Settings {
             error: 0.01,
+            relative_low: RELATIVE_LOW,
+            relative_high: RELATIVE_HIGH,
             min_area: None,
             rays: 4,
             quadrature: 1e-6,
@@ -128,6 +144,16 @@ impl Default for Settings {
 }
 
 impl Settings {
+    /// The link tolerance per receiver, for a scene of mean radiosity `mean`.
+    pub fn relative(&self, mean: f64) -> Relative {
+        Relative {
+            error: self.error,
+            mean,
+            low: self.relative_low,
+            high: self.relative_high,
+        }
+    }
+
     /// Checks the ranges, before any work.
     pub fn validate(&self) -> crate::Result<()> {
         let bad = |m: String| Err(crate::Error::Config(m));
@@ -135,6 +161,15 @@ impl Settings {
             return bad(format!(
                 "--error must be a positive number, got {}",
                 self.error
+            ));
+        }
+        if !(self.relative_low > 0.0
+            && self.relative_low <= self.relative_high
+            && !self.relative_high.is_nan())
+        {
+            return bad(format!(
+                "--relative-low and --relative-high must satisfy 0 < low <= high, got {} and {}",
+                self.relative_low, self.relative_high
             ));
         }
         if let Some(a) = self.min_area {
@@ -374,7 +409,7 @@ pub fn run(
     let mut links: Vec<Vec<Link>> = vec![Vec::new(); e.len()];
     {
         let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
-        let tols = tolerances(&specs, &rho, &state.b, s.error * b_ref, s, b_ref);
+        let tols = tolerances(&specs, &rho, &state.b, s.relative(b_ref).unknown(), s);
         let cost = evaluate_into(&ctx, &specs, &tols, &mut links);
         report.rays += cost.rays;
         report.evals += cost.evals;
@@ -382,9 +417,17 @@ pub fn run(
     report.initial_links = links.iter().map(Vec::len).sum::<usize>() + clinks.len();
 
     let mut error: Vec<f64> = Vec::new();
+    let mut rel = s.relative(b_ref);
     for pass_no in 0..s.max_passes.max(1) {
         let t0 = Instant::now();
+        // Cluster links keep the absolute tolerance; element links the receiver's, once
+        // a solve has given the receivers their radiosity.
         let eps = s.error * b_ref;
+        rel = if pass_no == 0 {
+            s.relative(b_ref).unknown()
+        } else {
+            s.relative(b_ref)
+        };
         report.eps = eps;
         let rays_before = report.rays;
         // Cluster links that today's radiosity puts over the tolerance go down a level.
@@ -402,7 +445,7 @@ pub fn run(
             report.rays += made.rays;
             report.cluster_pairs += made.pairs;
             let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
-            let tols = tolerances(&made.specs, &rho, &state.b, eps, s, b_ref);
+            let tols = tolerances(&made.specs, &rho, &state.b, rel, s);
             let cost = evaluate_into(&ctx, &made.specs, &tols, &mut links);
             report.rays += cost.rays;
             report.evals += cost.evals;
@@ -416,7 +459,7 @@ pub fn run(
                 vis,
                 &blockers,
                 s,
-                eps,
+                rel,
                 min_area,
                 tol,
                 &normals,
@@ -437,7 +480,7 @@ pub fn run(
             let leaves: Vec<u32> = e.leaves().collect();
             let extra = cluster_entries(tree, &e, &clinks, &leaves, vis, &state, eps, s);
             let (gather, cost) = gather_lists(
-                &ctx, &links, &extra, &rho, &state, eps, s.accuracy, s.descend,
+                &ctx, &links, &extra, &rho, &state, rel, s.accuracy, s.descend,
             );
             report.evals += cost.evals;
             report.rays += cost.rays;
@@ -522,6 +565,7 @@ pub fn run(
         &error,
         min_area,
         b_ref,
+        rel,
         &material,
         &mut report,
     );
@@ -619,26 +663,27 @@ fn mean_radiosity(e: &Elements, state: &State) -> f64 {
     }
 }
 
-/// The tolerances of each candidate link `r ← s` on its factor `F_rs`, from the link
-/// tolerance `eps`: what it may lose by being dropped as hidden, `hide × eps / w`, and its
-/// quadrature error, `accuracy × eps / w`, with `w = max over channels of ρ_r B_s`
-/// (`hide`, `accuracy` from the settings `set`). A
-/// source whose radiosity is not known yet (0 before the first solve) is taken at the mean
-/// radiosity `b_mean`, so that links made early are neither dropped nor integrated more
-/// coarsely than later ones.
+/// The tolerances of each candidate link `r ← s` on its factor `F_rs`, from the
+/// receiver's link tolerance `ε` and channel weights `k` ([`Relative::weights`]): what it
+/// may lose by being dropped as hidden, `hide × ε / w`, and its quadrature error,
+/// `accuracy × ε / w`, with `w = max over channels of k ρ_r B_s` (`hide`, `accuracy` from
+/// the settings `set`). A source
+/// whose radiosity is not known yet (0 before the first solve) is taken at the mean
+/// radiosity, so that links made early are neither dropped nor integrated more coarsely
+/// than later ones.
 fn tolerances(
     specs: &[(u32, u32)],
     rho: &[[f64; 3]],
     b: &[[f64; 3]],
-    eps: f64,
+    rel: Relative,
     set: &Settings,
-    b_mean: f64,
 ) -> Vec<Tolerance> {
     specs
         .iter()
         .map(|&(r, t)| {
+            let (eps, k) = rel.weights(b[r as usize]);
             let w = (0..3)
-                .map(|c| rho[r as usize][c] * b[t as usize][c].max(b_mean))
+                .map(|c| k[c] * rho[r as usize][c] * b[t as usize][c].max(rel.mean))
                 .fold(0.0, f64::max);
             if w > 0.0 {
                 Tolerance {
@@ -784,10 +829,12 @@ struct Entry {
 /// source was split (for other links) and its radiosity varies, that mean is biased for a
 /// leaf that sees one part of the source more than another (the ceiling above the bright
 /// middle of a floor). An entry whose source-side error `ρ_l F_ls ΔB_s` is above
-/// `descend × eps` is therefore replaced by entries to the source's children, each with the
-/// leaf's own factor, down to where the error is below it or the source is a leaf.
+/// `descend × ε_l` (the leaf's link tolerance, channels weighted by
+/// [`Relative::weights`]) is therefore replaced by entries to the source's children, each
+/// with the leaf's own factor, down to where the error is below it or the source is a
+/// leaf.
 ///
-/// Factors are integrated to `accuracy × eps / (ρ_l B_s)` (as in `tolerances`). Returns
+/// Factors are integrated to `accuracy × ε_l / (ρ_l B_s)` (as in `tolerances`). Returns
 /// the lists and the work spent.
 #[allow(clippy::too_many_arguments)]
 pub fn gather_lists(
@@ -796,7 +843,7 @@ pub fn gather_lists(
     extra: &[Vec<(u32, f64, f64)>],
     rho: &[[f64; 3]],
     state: &State,
-    eps: f64,
+    rel: Relative,
     accuracy: f64,
     descend: f64,
 ) -> (Gather, Cost) {
@@ -816,9 +863,10 @@ pub fn gather_lists(
             if e.buried[li] {
                 return (out, cost);
             }
+            let (eps, k) = rel.weights(b[li]);
             let weight = |src: u32, x: &[[f64; 3]]| {
                 (0..3)
-                    .map(|c| rho[li][c] * x[src as usize][c])
+                    .map(|c| k[c] * rho[li][c] * x[src as usize][c])
                     .fold(0.0, f64::max)
             };
             let f_tol = |src: u32| {
@@ -1111,7 +1159,7 @@ fn refine_links(
     vis: &Visibility,
     blockers: &Blockers,
     s: &Settings,
-    eps: f64,
+    rel: Relative,
     min_area: f64,
     tol: f64,
     normals: &[glam::DVec3],
@@ -1130,7 +1178,7 @@ fn refine_links(
                 rho: &rho,
                 b: &state.b,
                 spread: &state.spread,
-                eps,
+                tol: rel,
                 min_area,
             };
             (0..links.len())
@@ -1212,7 +1260,7 @@ fn refine_links(
         }
         let ctx = Context::new(e, patches, vis, blockers, s, tol);
         let (rho, _) = materials(e, &material);
-        let tols = tolerances(&specs, &rho, &state.b, eps, s, eps / s.error);
+        let tols = tolerances(&specs, &rho, &state.b, rel, s);
         let cost = evaluate_into(&ctx, &specs, &tols, links);
         report.rays += cost.rays;
         report.evals += cost.evals;
@@ -1230,6 +1278,7 @@ fn finish_report<'a>(
     error: &[f64],
     min_area: f64,
     b_ref: f64,
+    rel: Relative,
     material: &impl Fn(&Elements, usize) -> &'a crate::scene::Material,
     report: &mut Report,
 ) {
@@ -1245,7 +1294,7 @@ fn finish_report<'a>(
         rho: &rho,
         b: &state.b,
         spread: &state.spread,
-        eps: report.eps,
+        tol: rel,
         min_area,
     };
     report.unresolved = (0..e.len())
@@ -1253,8 +1302,8 @@ fn finish_report<'a>(
             links[p]
                 .iter()
                 .filter(|l| {
-                    let (var, spr) = oracle.error(p as u32, l);
-                    var + spr > report.eps
+                    let (var, spr, eps) = oracle.error(p as u32, l);
+                    var + spr > eps
                 })
                 .count()
         })

@@ -11,8 +11,8 @@
 //!
 //! with `ΔF_rs` the variation of the visible point factor over the receiver
 //! ([`super::link`]) and `ΔB_s` the spread of the solved radiosity below the source. A
-//! link is refined while `ε_rs` exceeds the absolute tolerance and an element can still be
-//! split without going under the minimum area. Which one: the source when its spread
+//! link is refined while `ε_rs` exceeds the receiver's tolerance ([`Relative`]) and an
+//! element can still be split without going under the minimum area. Which one: the source when its spread
 //! dominates the error, else the larger of the two (the receiver on a tie), as in HSA.
 //! Partial links have `ΔF` equal to the largest point factor, so shadow boundaries refine
 //! first and furthest.
@@ -46,6 +46,70 @@ pub enum Decision {
     SplitSource,
 }
 
+/// The link tolerance of each receiver, per channel:
+/// `ε_r = error × clamp(B_r, low × B̄, high × B̄)`, with `B_r` the receiver's current
+/// radiosity and `B̄` the scene's mean radiosity (luminance).
+///
+/// With `low = high = 1` this is the absolute tolerance `error × B̄` of HSA's BF
+/// refinement: every link may then err by the same radiosity, which is a large *relative*
+/// error on a dark receiver (the Cornell box's mean includes the light, so a block's face
+/// toward the opening, 1/20 of `B̄`, was allowed 20 times the relative error of the mean).
+/// With `low < 1` a receiver darker than the mean is held to the same relative error as
+/// the others, down to the floor `low × B̄` (so that unlit or black receivers do not refine
+/// without end); with `high > 1`, receivers brighter than the mean are let off in
+/// proportion, up to `high × B̄`. This is the simplest form of a receiver-relative
+/// criterion: a Weber fraction, where Gibson and Hubbold ("Perceptually-driven radiosity",
+/// Computer Graphics Forum 16(2), 1997) stop refinement once successive levels differ by
+/// less than a perceptually noticeable amount at the receiver's (tone-mapped) brightness.
+/// Before the first solve no receiver's radiosity is known (it is its emission): every
+/// receiver is then taken at the mean ([`Relative::unknown`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Relative {
+    /// The tolerance relative to the receiver's radiosity (`--error`).
+    pub error: f64,
+    /// The scene's mean radiosity `B̄`.
+    pub mean: f64,
+    /// Floor of the receiver's radiosity, as a share of `B̄`.
+    pub low: f64,
+    /// Cap of the receiver's radiosity, as a share of `B̄`.
+    pub high: f64,
+}
+
+impl Relative {
+    /// The absolute tolerance `error × mean` of a receiver of unknown radiosity, or of
+    /// every receiver when `low = high = 1`.
+    pub fn absolute(&self) -> f64 {
+        self.error * self.mean
+    }
+
+    /// The same tolerance for receivers whose radiosity is not known yet: every one at the
+    /// mean (`low = high = 1`).
+    pub fn unknown(&self) -> Relative {
+        Relative {
+            low: 1.0,
+            high: 1.0,
+            ..*self
+        }
+    }
+
+    /// The tolerance per channel of a receiver of radiosity `b`.
+    pub fn eps(&self, b: [f64; 3]) -> [f64; 3] {
+        let (lo, hi) = (self.low * self.mean, self.high * self.mean);
+        b.map(|x| self.error * x.max(lo).min(hi))
+    }
+
+    /// The same as one tolerance and channel weights: the loosest channel's tolerance
+    /// `ε`, and per channel `k_c = ε / ε_c` (≥ 1; exactly 1 for every channel when they
+    /// share one tolerance), so that an error `x_c` is within channel `c`'s tolerance when
+    /// `k_c x_c ≤ ε`.
+    pub fn weights(&self, b: [f64; 3]) -> (f64, [f64; 3]) {
+        let eps = self.eps(b);
+        let top = eps.iter().copied().fold(0.0, f64::max);
+        let k = eps.map(|x| if x > 0.0 { top / x } else { 0.0 });
+        (top, k)
+    }
+}
+
 /// The oracle's inputs for one link.
 pub struct Oracle<'a> {
     /// The elements.
@@ -56,27 +120,30 @@ pub struct Oracle<'a> {
     pub b: &'a [[f64; 3]],
     /// Spread of leaf radiosity below each element.
     pub spread: &'a [[f64; 3]],
-    /// Absolute tolerance on transported radiosity.
-    pub eps: f64,
+    /// Tolerance on transported radiosity, per receiver.
+    pub tol: Relative,
     /// No element is split into children smaller than this.
     pub min_area: f64,
 }
 
 impl Oracle<'_> {
     /// The brightness-weighted error of link `l` into receiver `r`, split into the
-    /// receiver-variation and source-spread terms (the channel maxima of each).
-    pub fn error(&self, r: u32, l: &Link) -> (f64, f64) {
+    /// receiver-variation and source-spread terms (the channel maxima of each, each
+    /// channel weighted by [`Relative::weights`]), and the receiver's tolerance: the link
+    /// is good enough when the two terms add up to at most the tolerance.
+    pub fn error(&self, r: u32, l: &Link) -> (f64, f64, f64) {
         let (rho, bs, ds) = (
             self.rho[r as usize],
             self.b[l.src as usize],
             self.spread[l.src as usize],
         );
+        let (eps, k) = self.tol.weights(self.b[r as usize]);
         let (mut var, mut spr) = (0.0f64, 0.0f64);
         for c in 0..3 {
-            var = var.max(rho[c] * bs[c] * l.df);
-            spr = spr.max(rho[c] * ds[c] * l.open);
+            var = var.max(rho[c] * bs[c] * l.df * k[c]);
+            spr = spr.max(rho[c] * ds[c] * l.open * k[c]);
         }
-        (var, spr)
+        (var, spr, eps)
     }
 
     /// True when `e` may be split.
@@ -86,8 +153,8 @@ impl Oracle<'_> {
 
     /// What to do with link `l` into `r`.
     pub fn decide(&self, r: u32, l: &Link) -> Decision {
-        let (var, spr) = self.error(r, l);
-        if var + spr <= self.eps {
+        let (var, spr, eps) = self.error(r, l);
+        if var + spr <= eps {
             return Decision::Keep;
         }
         let (r_ok, s_ok) = (self.splittable(r), self.splittable(l.src));
@@ -442,23 +509,90 @@ mod tests {
             proved: false,
             open: 0.1,
         };
+        // Absolute: low = high = 1, mean 1.
+        let tol = |error: f64| Relative {
+            error,
+            mean: 1.0,
+            low: 1.0,
+            high: 1.0,
+        };
         let o = Oracle {
             elements: &e,
             rho: &rho,
             b: &b,
             spread: &spread,
-            eps: 0.05,
+            tol: tol(0.05),
             min_area: 1.0,
         };
         // Error 0.5 * 1 * 0.2 = 0.1 > 0.05: split (receiver on a tie of areas).
         assert_eq!(o.decide(0, &link), Decision::SplitReceiver);
-        let o2 = Oracle { eps: 0.2, ..o };
+        let o2 = Oracle { tol: tol(0.2), ..o };
         assert_eq!(o2.decide(0, &link), Decision::Keep);
         let o3 = Oracle {
             min_area: 5.0,
-            eps: 0.05,
+            tol: tol(0.05),
             ..o2
         };
         assert_eq!(o3.decide(0, &link), Decision::Keep);
+    }
+
+    #[test]
+    fn receiver_tolerance_follows_its_radiosity_between_floor_and_cap() {
+        let rel = Relative {
+            error: 0.01,
+            mean: 2.0,
+            low: 0.25,
+            high: 4.0,
+        };
+        // Unknown: at the mean; black: at the floor.
+        assert_eq!(rel.unknown().eps([0.0, 1.0, 100.0]), [0.02; 3]);
+        assert_eq!(rel.eps([0.0; 3]), [0.005; 3]);
+        // Dark channels at the floor (0.5), bright ones at the cap (8), others as they are.
+        let eps = rel.eps([0.1, 1.0, 100.0]);
+        for (x, want) in eps.iter().zip([0.005, 0.01, 0.08]) {
+            assert!((x - want).abs() < 1e-15, "{eps:?}");
+        }
+        // low = high = 1: the absolute tolerance whatever the receiver.
+        let abs = Relative {
+            low: 1.0,
+            high: 1.0,
+            ..rel
+        };
+        assert_eq!(abs.eps([0.1, 1.0, 100.0]), [abs.absolute(); 3]);
+        // A link from a source of radiosity 1 (element 2) into a receiver (element 1) of
+        // radiosity `b_r`: error 0.5 × 1 × 0.015 = 0.0075, against 0.01 × clamp(b_r, 0.5, 8).
+        let mut e = floor();
+        e.split(0);
+        let rho = vec![[0.5; 3]; 5];
+        let spread = vec![[0.0; 3]; 5];
+        let link = Link {
+            src: 2,
+            f: 0.1,
+            err: 0.0,
+            se: 0.0,
+            df: 0.015,
+            partial: false,
+            vis: 1.0,
+            proved: false,
+            open: 0.1,
+        };
+        let decide = |tol: Relative, b_r: f64| {
+            let b = vec![[1.0; 3], [b_r; 3], [1.0; 3], [1.0; 3], [1.0; 3]];
+            Oracle {
+                elements: &e,
+                rho: &rho,
+                b: &b,
+                spread: &spread,
+                tol,
+                min_area: 1.0,
+            }
+            .decide(1, &link)
+        };
+        // Bright receivers keep it, dark ones (to the floor) refine it; the absolute
+        // tolerance (0.02) keeps it whatever the receiver.
+        assert_eq!(decide(rel, 1.0), Decision::Keep);
+        assert_eq!(decide(rel, 0.5), Decision::SplitReceiver);
+        assert_eq!(decide(rel, 0.01), Decision::SplitReceiver);
+        assert_eq!(decide(abs, 0.01), Decision::Keep);
     }
 }

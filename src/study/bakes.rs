@@ -267,6 +267,9 @@ pub struct Settings {
     pub errors: Vec<f64>,
     /// Visibility rays per side of the hierarchical links (`--link-rays`).
     pub rays: usize,
+    /// Floor and cap of a receiver's radiosity in its link tolerance
+    /// ([`hierarchy::Settings::relative_low`], `relative_high`).
+    pub relative: (f64, f64),
     /// Output folder.
     pub out: PathBuf,
 }
@@ -280,6 +283,7 @@ impl Settings {
             flat: vec![500, 1000, 2000, 4000],
             errors: vec![0.04, 0.02, 0.01, 0.005, 0.0025],
             rays: hierarchy::Settings::default().rays,
+            relative: (hierarchy::RELATIVE_LOW, hierarchy::RELATIVE_HIGH),
             out,
         }
     }
@@ -331,8 +335,11 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
         let settings = hierarchy::Settings {
             error: err,
             rays: s.rays,
+            relative_low: s.relative.0,
+            relative_high: s.relative.1,
             ..Default::default()
         };
+        settings.validate()?;
         let sol = hierarchy::run(&patches, &vis, &settings, &|_| {})?;
         let (leaves, b, ids) = leaf_mesh(&sol.elements, &patches, &sol.state.b);
         let verts = interpolate_with(&leaves, &b, 30.0, Nodal::Linear);
