@@ -828,7 +828,8 @@ pub fn recheck(f: &Refiner, links: &mut Links) -> (Made, usize) {
 /// Points a piece of a link's source is sampled at for the near-field correction
 /// ([`piece_factor`]). Measured on the cube furnace (docs/HIERARCHY.md, Clustering): 1
 /// point already takes the power unaccounted for from 2.4% to 0.06%; 8 bring the worst
-/// leaf to 0.2% at about 2.5 times the gather's cost of the point source alone.
+/// leaf from 6.9% to 0.2%, for 2.8 times the user CPU of that test with the point
+/// source alone (16% more on `scenes/room-sphere.obj`).
 pub const POINTS: usize = 8;
 
 /// Most root pairs [`Refiner::facing`] examines one by one.
@@ -928,7 +929,16 @@ impl Refiner<'_> {
 
     /// [`sample_points`] of node `n` for the receiver `r`.
     fn samples(&self, r: u32, n: u32, w: DVec3) -> Vec<Sample> {
-        sample_points(self.tree, self.elements, self.seed, self.points, r, n, w)
+        sample_points(
+            self.tree,
+            self.elements,
+            self.visible,
+            self.seed,
+            self.points,
+            r,
+            n,
+            w,
+        )
     }
 
     /// [`Refiner::pieces`] of every link.
@@ -959,10 +969,14 @@ impl Refiner<'_> {
 /// roots in tree order, the root's second parameter), so that a node of one root gets
 /// one point per row and per column of its parameter square, and a node of many roots
 /// one point per `1/k` of its area. Triangles are mapped by `u = √ξ` (uniform by
-/// area); the weights carry the remaining Jacobian.
+/// area); the weights carry the remaining Jacobian, and the ratio of each root's visible
+/// area today (`visible`) to the one the tree was built with, so that the weights'
+/// expectation is today's visible area and that of `facing` today's `P_n(w)`.
+#[allow(clippy::too_many_arguments)]
 pub fn sample_points(
     t: &Tree,
     e: &Elements,
+    visible: &[f64],
     seed: u64,
     k: usize,
     r: u32,
@@ -1012,7 +1026,8 @@ pub fn sample_points(
             }
             crate::formfactor::exact::Piece::Quad(_) => e.piece[mi].at(xi, 1.0 - xi, v, 1.0 - v),
         };
-        let weight = (b - a) * inv * wj / e.area[mi].max(1e-300);
+        let today = if vis > 0.0 { visible[mi] / vis } else { 0.0 };
+        let weight = (b - a) * inv * wj / e.area[mi].max(1e-300) * today;
         out.push(Sample {
             at: p,
             root: m,
@@ -1257,7 +1272,7 @@ mod tests {
             let runs = 400;
             let (mut sum, mut sq_err, mut se2) = (0.0, 0.0, 0.0);
             for r in 0..runs {
-                let p = piece(sample_points(&t, &e, 1, POINTS, r, 0, w));
+                let p = piece(sample_points(&t, &e, &vis, 1, POINTS, r, 0, w));
                 let (f, se) = piece_factor(&p, 1.0, &e, 1);
                 sum += f;
                 sq_err += (f - exact).powi(2);
