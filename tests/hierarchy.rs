@@ -359,10 +359,10 @@ fn clustered_and_unclustered_bakes_agree() {
         c.report.initial_links
     );
     assert!(
-        worst_tight < 0.002,
+        worst_tight < 0.0015,
         "objects differ by {worst_tight} at accuracy 3"
     );
-    assert!(c.report.initial_links * 3 < b.report.initial_links);
+    assert!(c.report.initial_links * 4 < b.report.initial_links);
     let (ra, oa) = averages(&p, &a);
     let (rb, ob) = averages(&p, &b);
     let worst_obj = oa
@@ -405,26 +405,29 @@ fn clustered_and_unclustered_bakes_agree() {
         a.report.rows_over_one,
         b.report.rows_over_one
     );
-    // Measured: objects within 1.4% (the clustered bake darker everywhere; the goal is
-    // 1%), roots within 1.8%, 6x fewer initial links (docs/HIERARCHY.md, Clustering).
+    // Measured: objects within 0.19% (the ceiling; the others within 0.05%), roots within
+    // 0.75%, 5.9x fewer initial links (docs/HIERARCHY.md, Clustering). With the point
+    // source alone: 1.4% (every object darker) and 1.8%.
     assert!(a.report.cluster_links > 0);
-    assert!(worst_obj < 0.02, "object averages differ by {worst_obj}");
-    assert!(worst_root < 0.03, "root averages differ by {worst_root}");
+    assert!(worst_obj < 0.005, "object averages differ by {worst_obj}");
+    assert!(worst_root < 0.015, "root averages differ by {worst_root}");
     assert!(ia * 5 < ib, "initial links {ia} vs {ib}");
 }
 
-#[test]
-fn furnace_with_clusters() {
-    // The closed cube cut into 16 x 16 patches a face: far enough apart for cluster links
-    // between groups of patches. rho 0.5 and E 1 everywhere: B = 2.
+/// The closed cube cut into 16 x 16 patches a face, far enough apart for cluster links
+/// between groups of patches; rho 0.5 and E 1 everywhere: B = 2. Returns the report and
+/// the area-weighted mean B, the worst leaf's relative error and the share of the power
+/// unaccounted for.
+fn cube_furnace_with_clusters(accuracy: f64) -> (hierarchy::Report, f64, f64, f64) {
     let s = Settings {
         error: 0.02,
         min_area: Some(1.0 / 1024.0),
         clusters: true,
+        cluster_accuracy: accuracy,
         ..Settings::default()
     };
     let (_, sol) = solve("cube", Resolution::Patches(1536), &s);
-    let r = &sol.report;
+    let r = sol.report;
     let e = &sol.elements;
     let (mut worst, mut sum, mut area) = (0.0f64, 0.0, 0.0);
     for l in e.leaves() {
@@ -436,18 +439,40 @@ fn furnace_with_clusters() {
     let mean = sum / area;
     let balance = (r.emitted[0] - r.absorbed[0]).abs() / r.emitted[0];
     eprintln!(
-        "cube furnace with clusters: {} cluster links, {} initial links, mean B {mean:.6}, \
-         worst leaf {worst:.4}, power {balance:.2e}, largest factor sum {:?}",
+        "cube furnace with clusters, accuracy {accuracy}: {} cluster links, {} initial links, \
+         mean B {mean:.6}, worst leaf {worst:.4}, power {balance:.2e}, largest factor sum {:?}",
         r.cluster_links, r.initial_links, r.max_row_sum
     );
-    // Measured: mean B +1.2%, worst leaf 6.9%, 2.4% of the power unaccounted for, largest
-    // factor sum 1.115 (without clusters: 1e-6). The point-source cluster links each stay
-    // within the link tolerance but their errors have one sign and add up over a
-    // receiver's links: the furnace does not hold to the elements' precision.
+    (r, mean, worst, balance)
+}
+
+#[test]
+fn furnace_with_clusters() {
+    let (r, mean, worst, balance) = cube_furnace_with_clusters(f64::INFINITY);
+    // Measured: mean B -6.5e-5, worst leaf 0.18%, 1.3e-4 of the power unaccounted for,
+    // largest factor sum 1.0031 ± 0.0036 (without clusters: 1e-6). With the point source
+    // alone (no near-field correction), whose errors have one sign and add up over a
+    // receiver's links: +1.2%, 6.9%, 2.4% and 1.115.
     assert!(r.cluster_links > 0);
-    assert!((mean - 2.0).abs() / 2.0 < 0.02, "mean B {mean}");
-    assert!(worst < 0.1, "worst leaf {worst}");
-    assert!(balance < 0.05, "power balance {balance:e}");
+    assert!((mean - 2.0).abs() / 2.0 < 1e-3, "mean B {mean}");
+    assert!(worst < 0.01, "worst leaf {worst}");
+    assert!(balance < 1e-3, "power balance {balance:e}");
+    assert!(
+        r.max_row_sum.0 < 1.02,
+        "largest factor sum {:?}",
+        r.max_row_sum
+    );
+}
+
+/// The rows of docs/HIERARCHY.md's cube furnace table at the cluster accuracies it lists
+/// (`cargo test --release --test tests furnace_with_clusters_by_accuracy -- --ignored
+/// --nocapture`).
+#[test]
+#[ignore]
+fn furnace_with_clusters_by_accuracy() {
+    for accuracy in [f64::INFINITY, 4.0, 2.0, 1.0, 0.5] {
+        cube_furnace_with_clusters(accuracy);
+    }
 }
 
 /// The Cornell box closed by a front wall, every face ρ 0.5 and E 1: B = 2 everywhere

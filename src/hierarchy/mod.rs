@@ -629,6 +629,7 @@ fn refiner<'a>(
         rays: s.rays,
         seed: s.seed,
         accuracy: s.cluster_accuracy,
+        points: clusters::POINTS,
     }
 }
 
