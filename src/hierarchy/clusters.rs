@@ -258,6 +258,18 @@ impl Tree {
         };
         &self.members[lo as usize..hi as usize]
     }
+
+    /// The roots of node `n` ([`Tree::roots_of`]) with the span `[a, b)` of their
+    /// cumulative areas `cum`, from which a point of the node is drawn by area.
+    fn area_span(&self, n: u32) -> (&[u32], usize, f64, f64) {
+        let roots = self.roots_of(n);
+        let lo = if is_cluster(n) {
+            self.range[(n & !CLUSTER) as usize].0 as usize
+        } else {
+            self.slot[n as usize] as usize
+        };
+        (roots, lo, self.cum[lo], self.cum[lo + roots.len()])
+    }
 }
 
 /// What the link rules read of a node.
@@ -679,13 +691,7 @@ impl Refiner<'_> {
     /// the root's area).
     fn sample(&self, n: u32, rng: &mut Pcg32) -> Option<(DVec3, DVec3, f64)> {
         let t = self.tree;
-        let roots = t.roots_of(n);
-        let lo = if is_cluster(n) {
-            t.range[(n & !CLUSTER) as usize].0 as usize
-        } else {
-            t.slot[n as usize] as usize
-        };
-        let (a, b) = (t.cum[lo], t.cum[lo + roots.len()]);
+        let (roots, lo, a, b) = t.area_span(n);
         if b <= a {
             return None;
         }
@@ -986,13 +992,7 @@ pub fn sample_points(
     if k == 0 {
         return Vec::new();
     }
-    let roots = t.roots_of(n);
-    let lo = if is_cluster(n) {
-        t.range[(n & !CLUSTER) as usize].0 as usize
-    } else {
-        t.slot[n as usize] as usize
-    };
-    let (a, b) = (t.cum[lo], t.cum[lo + roots.len()]);
+    let (roots, lo, a, b) = t.area_span(n);
     if b <= a {
         return Vec::new();
     }
