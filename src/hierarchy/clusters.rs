@@ -899,7 +899,7 @@ impl Refiner<'_> {
     /// each with its own radiosity, centre and projected area, while the share of the
     /// link it carries times its spread, `ρ_R F_up (P_n / P_S) ΔB_n`, is above
     /// `descend × eps` (at most [`MAX_PIECES`] pieces), as the element gather does with
-    /// split sources. Each piece carries its sample points ([`Refiner::samples`]); a
+    /// split sources. Each piece carries its sample points (`Refiner::samples`); a
     /// piece with no projected area toward `r`'s centre is left out only when it faces
     /// nothing of `r` ([`Refiner::facing`]).
     pub fn pieces(&self, r: u32, l: &ClusterLink, descend: f64) -> Vec<Piece> {
