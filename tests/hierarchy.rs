@@ -56,7 +56,6 @@ fn the_memory_limit_refuses_or_caps_the_links() {
         max_memory: Some(64 << 20),
         ..Settings::default()
     };
-    let t = std::time::Instant::now();
     let e = hierarchy::run(&patches, &vis, &s, &|_| {})
         .err()
         .expect("refused")
@@ -67,12 +66,6 @@ fn the_memory_limit_refuses_or_caps_the_links() {
             && e.contains("--max-memory")
             && e.contains(&format!("{} root patches", patches.len())),
         "{e}"
-    );
-    // Before any work: the 2,000-odd roots' links would take seconds.
-    assert!(
-        t.elapsed().as_secs_f64() < 5.0,
-        "refused after {:?}",
-        t.elapsed()
     );
 
     // The cube: 30 initial links fit; a limit of about 3,000 links stops the refinement.
