@@ -3,7 +3,8 @@
 //! and their bars cover the exact rows, on the notes' shelf (strips meeting at right
 //! angles), on two strips meeting in a narrow wedge, and on two strips facing each other
 //! across a thin gap. The area estimators' kernel is unbounded there; such pairs go to the
-//! semi-analytic integral ([`radiosity::formfactor::area::near`]).
+//! semi-analytic integral ([`radiosity::formfactor::area::near`]), by quadrature to a bound
+//! where nothing can block them.
 
 use radiosity::formfactor::area::{near, NEAR};
 use radiosity::matrix::{over_one, Bar, FormFactors};
@@ -151,14 +152,23 @@ fn no_row_is_over_one_beyond_its_bars_where_patches_touch() {
                 beyond,
                 100.0 * covered
             );
-            // Three checks: no row over 1 beyond chance (the project's rule, a family-wise
-            // rate of 1e-3 per matrix); rows bounded (without the near-pair integral rows
+            // Four checks: no row over 1 beyond chance (the project's rule, a family-wise
+            // rate of 1e-3 per matrix); none over 1 by more than 3 of its bars either (with
+            // near pairs integrated to a bound the rows' random part is small against their
+            // distance from 1: none in 20 seeds on these scenes, where pairs within a
+            // quarter side sampled at random nodes put 1 to 2 rows of 1000 over); rows bounded (without the near-pair integral rows
             // reached 2.4 to 11.9 here, with bars as wide); and bars that cover: honest
             // rows are within 3 bars 94.2% of the time, and of 100 rows fewer than 85% is
             // 4 binomial deviations off (false alarm about 3e-5 per case; without the
             // near-pair integral 70% to 83% on the 100-patch meshes).
             if let Some(x) = beyond {
                 failures.push(format!("{scene} {res:?} {}: {x:?}", ff.estimator));
+            }
+            if !over.is_empty() {
+                failures.push(format!(
+                    "{scene} {res:?} {}: over 1 by 3 bars: {over:?}",
+                    ff.estimator
+                ));
             }
             if worst.0 > 1.5 {
                 failures.push(format!("{scene} {res:?} {}: row {worst:?}", ff.estimator));
@@ -179,17 +189,17 @@ fn no_row_is_over_one_beyond_its_bars_where_patches_touch() {
 /// The near test: patches that share an edge are near, patches farther apart than
 /// [`NEAR`] times the larger one's side are not, whatever the mesh.
 #[test]
-fn near_pairs_are_those_closer_than_a_quarter_side() {
+fn near_pairs_are_those_closer_than_the_larger_side() {
     let dir = std::env::temp_dir().join(format!("radiosity-near-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
     for (gap, want) in [
         (0.0, true),
-        (0.2, true),
-        (0.49, true),
-        (0.51, false),
-        (2.0, false),
+        (0.5, true),
+        (1.99, true),
+        (2.01, false),
+        (4.0, false),
     ] {
-        // Two 4 x 1 strips (one patch each, side √4 = 2, reach 0.5) facing each other
+        // Two 4 x 1 strips (one patch each, side √4 = 2, reach 2) facing each other
         // `gap` apart, or unit squares sharing an edge at a right angle for gap 0.
         let scene = if gap == 0.0 {
             Scene::load("plates-perpendicular").expect("built in")
