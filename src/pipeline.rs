@@ -708,8 +708,21 @@ fn bake_gathered(
 
 /// Refuses, before any work, what the hierarchical method does not support: two-sided
 /// faces (its contact and burial tests take a face's back for the inside of a solid, and
-/// the two sides of a two-sided face lie on each other).
+/// the two sides of a two-sided face lie on each other), and so a closed room whose faces
+/// point out ([`Scene::inside_out_warning`]): the flat method's remedy, `--two-sided`, is
+/// not open here, and the bake would come out unlit.
 fn check_hierarchical(scene: &Scene) -> Result<()> {
+    if scene.inside_out_warning().is_some() {
+        return Err(Error::Config(format!(
+            "`{}` looks like a closed room whose faces point out of it (rays from the centre \
+             of its bounds leave through the back of its outermost faces), and faces emit \
+             and receive only on their front, so a hierarchical bake would see nothing from \
+             inside. --method hierarchical does not support two-sided faces: flip the \
+             normals (Blender: Mesh > Normals > Flip, then export again), or bake with \
+             --method flat --two-sided",
+            scene.source
+        )));
+    }
     if let Some(f) = scene.faces.iter().find(|f| f.is_two_sided()) {
         let m = &scene.materials[f.material as usize];
         let why = if m.two_sided {

@@ -196,7 +196,7 @@ impl Observer for Log {
 }
 
 #[test]
-fn an_outward_room_is_warned_about_before_any_form_factor_and_hierarchy_refuses_two_sides() {
+fn an_outward_room_is_warned_about_before_any_form_factor_and_hierarchy_refuses_it() {
     let dir = temp_dir("early");
     let path = outward_cube(&dir, "");
     let cfg = BakeConfig {
@@ -246,6 +246,27 @@ fn an_outward_room_is_warned_about_before_any_form_factor_and_hierarchy_refuses_
         "{events:?}"
     );
     assert!(!dir.join("hier").exists());
+    // One-sided, the outward room is refused by the hierarchical method before any work
+    // (its remedy there is flipping the normals: it would bake unlit), with no folder.
+    let h1 = BakeConfig {
+        two_sided: false,
+        out_dir: dir.join("hier1"),
+        ..h
+    };
+    let log = Log::default();
+    let e = pipeline::bake(&h1, &log).unwrap_err().to_string();
+    assert!(
+        e.contains("point out of it") && e.contains("flip the") && e.contains(&path),
+        "{e}"
+    );
+    let events = log.0.into_inner().unwrap();
+    assert!(
+        !events
+            .iter()
+            .any(|e| e.starts_with("begin") && e != "begin load"),
+        "{events:?}"
+    );
+    assert!(!dir.join("hier1").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
 
