@@ -231,21 +231,26 @@ fn an_outward_room_is_warned_about_before_any_form_factor_and_hierarchy_refuses_
         hierarchy: Some(radiosity::hierarchy::Settings::default()),
         ..cfg
     };
-    let log = Log::default();
-    let e = pipeline::bake(&h, &log).unwrap_err().to_string();
+    // Refused before any stage after loading, and no folder written.
+    let refused = |cfg: &BakeConfig| {
+        let log = Log::default();
+        let e = pipeline::bake(cfg, &log).unwrap_err().to_string();
+        let events = log.0.into_inner().unwrap();
+        assert!(
+            !events
+                .iter()
+                .any(|e| e.starts_with("begin") && e != "begin load"),
+            "{events:?}"
+        );
+        assert!(!cfg.out_dir.exists());
+        e
+    };
+    let e = refused(&h);
     assert!(
         e.contains("--method hierarchical does not support two-sided faces")
             && e.contains("--two-sided was given"),
         "{e}"
     );
-    let events = log.0.into_inner().unwrap();
-    assert!(
-        !events
-            .iter()
-            .any(|e| e.starts_with("begin") && e != "begin load"),
-        "{events:?}"
-    );
-    assert!(!dir.join("hier").exists());
     // One-sided, the outward room is refused by the hierarchical method before any work
     // (its remedy there is flipping the normals: it would bake unlit), with no folder.
     let h1 = BakeConfig {
@@ -253,20 +258,11 @@ fn an_outward_room_is_warned_about_before_any_form_factor_and_hierarchy_refuses_
         out_dir: dir.join("hier1"),
         ..h
     };
-    let log = Log::default();
-    let e = pipeline::bake(&h1, &log).unwrap_err().to_string();
+    let e = refused(&h1);
     assert!(
         e.contains("point out of it") && e.contains("flip the") && e.contains(&path),
         "{e}"
     );
-    let events = log.0.into_inner().unwrap();
-    assert!(
-        !events
-            .iter()
-            .any(|e| e.starts_with("begin") && e != "begin load"),
-        "{events:?}"
-    );
-    assert!(!dir.join("hier1").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
 
