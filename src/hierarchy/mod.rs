@@ -928,7 +928,7 @@ pub fn gather_lists(
                             // Taking the fraction 1 when they all come out free (and
                             // tracing otherwise) is biased high by `v^n (1 - v)` for a leaf
                             // whose true fraction is `v` (at most 0.08 for n = 4), inside
-                            // that bar (0.12 relative for 4 free rays); with the
+                            // that bar (0.15 relative for 4 free rays); with the
                             // ancestor's bar alone, 21 leaves of the room with a sphere
                             // summed their factors over 1 beyond 3 bars.
                             (
