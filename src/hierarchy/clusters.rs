@@ -1116,48 +1116,61 @@ pub fn piece_factor(piece: &Piece, v: f64, e: &Elements, l: u32) -> (f64, f64) {
     (v * (base + sum) / a, v * var.sqrt() / a)
 }
 
-/// For each element of `targets`, the cluster links on its root's chain (the root's own
-/// and its clusters') as `(source node, factor, standard error)` entries, one per piece of
-/// the link's source ([`Refiner::pieces`], [`piece_factor`]), the standard error combining
-/// the visible fraction's and the piece's sampling; nothing for buried elements.
-pub fn expand(
+/// The cluster links with their sources cut into pieces: what an element gathers from
+/// clusters ([`Expansion::entries`]).
+pub struct Expansion<'a> {
+    /// The cluster tree.
+    pub tree: &'a Tree,
+    /// The cluster links.
+    pub links: &'a Links,
+    /// Their sources' pieces ([`Refiner::all_pieces`]).
+    pub pieces: Pieces,
+}
+
+impl Expansion<'_> {
+    /// The cluster links on the chain of `l`'s root (the root's own and its clusters') as
+    /// `(source node, factor, standard error)` entries appended to `out`, one per piece of
+    /// the link's source ([`Refiner::pieces`], [`piece_factor`]), the standard error
+    /// combining the visible fraction's and the piece's sampling; nothing for a buried
+    /// element. Called per element where its list is used, so that no list of every
+    /// element's entries is held at once (at 10^5 triangles they were most of the bake's
+    /// memory).
+    pub fn entries(&self, e: &Elements, l: u32, out: &mut Vec<(u32, f64, f64)>) {
+        expand_into(self.tree, e, self.links, &self.pieces, l, out);
+    }
+}
+
+fn expand_into(
     t: &Tree,
     e: &Elements,
     links: &Links,
     pieces: &Pieces,
-    targets: &[u32],
-) -> Vec<Vec<(u32, f64, f64)>> {
-    let none = links.is_empty();
-    targets
-        .par_iter()
-        .map(|&l| {
-            let li = l as usize;
-            let mut out = Vec::new();
-            if e.buried[li] || none {
-                return out;
-            }
-            let root = e.root[li];
-            let mut node = root;
-            let mut parent = t.root_parent.get(root as usize).copied().unwrap_or(NONE);
-            loop {
-                for (k, ps) in links.into_node(node).iter().zip(pieces.of(node)) {
-                    let rel = k.v_se / k.v.max(1e-300);
-                    for p in ps {
-                        let (f, se) = piece_factor(p, k.v, e, l);
-                        if f > 0.0 {
-                            out.push((p.node, f, (f * rel).hypot(se)));
-                        }
-                    }
+    l: u32,
+    out: &mut Vec<(u32, f64, f64)>,
+) {
+    let li = l as usize;
+    if e.buried[li] || links.is_empty() {
+        return;
+    }
+    let root = e.root[li];
+    let mut node = root;
+    let mut parent = t.root_parent.get(root as usize).copied().unwrap_or(NONE);
+    loop {
+        for (k, ps) in links.into_node(node).iter().zip(pieces.of(node)) {
+            let rel = k.v_se / k.v.max(1e-300);
+            for p in ps {
+                let (f, se) = piece_factor(p, k.v, e, l);
+                if f > 0.0 {
+                    out.push((p.node, f, (f * rel).hypot(se)));
                 }
-                if parent == NONE {
-                    break;
-                }
-                node = parent | CLUSTER;
-                parent = t.parent[parent as usize];
             }
-            out
-        })
-        .collect()
+        }
+        if parent == NONE {
+            break;
+        }
+        node = parent | CLUSTER;
+        parent = t.parent[parent as usize];
+    }
 }
 
 #[cfg(test)]

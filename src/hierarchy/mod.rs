@@ -45,6 +45,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use crate::budget;
+use crate::matrix::Bar;
 use crate::mesh::PatchSet;
 use crate::sampling::fraction_se;
 use crate::scene::luminance;
@@ -477,10 +478,16 @@ pub fn run(
         let last = (refined == 0 && pass_no > 0) || pass_no + 1 == s.max_passes.max(1);
         let stats = if last {
             let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
-            let leaves: Vec<u32> = e.leaves().collect();
-            let extra = cluster_entries(tree, &e, &clinks, &leaves, vis, &state, eps, s);
+            let extra = expansion(tree, &e, &clinks, vis, &state, eps, s);
             let (gather, cost) = gather_lists(
-                &ctx, &links, &extra, &rho, &state, rel, s.accuracy, s.descend,
+                &ctx,
+                &links,
+                extra.as_ref(),
+                &rho,
+                &state,
+                rel,
+                s.accuracy,
+                s.descend,
             );
             report.evals += cost.evals;
             report.rays += cost.rays;
@@ -509,8 +516,17 @@ pub fn run(
             error = propagate(&e, &gather, &rho, &carried);
             st
         } else {
-            let roots: Vec<u32> = (0..e.roots as u32).collect();
-            let extra = cluster_entries(tree, &e, &clinks, &roots, vis, &state, eps, s);
+            let extra: Vec<solve::List> = match expansion(tree, &e, &clinks, vis, &state, eps, s) {
+                Some(x) => (0..e.roots as u32)
+                    .into_par_iter()
+                    .map_init(Vec::new, |buf, r| {
+                        buf.clear();
+                        x.entries(&e, r, buf);
+                        solve::List::new(buf.iter().map(|&(src, f, _)| (src, f)))
+                    })
+                    .collect(),
+                None => Vec::new(),
+            };
             solve::solve_push(
                 &e,
                 tree,
@@ -578,27 +594,27 @@ pub fn run(
     })
 }
 
-/// The cluster links' gather entries of `targets` ([`clusters::expand`]), their sources
-/// cut into pieces where their radiosity varies; none without clusters.
+/// The cluster links with their sources cut into pieces where their radiosity varies
+/// ([`clusters::Expansion`]); none without clusters.
 #[allow(clippy::too_many_arguments)]
-fn cluster_entries(
-    tree: Option<&Tree>,
+fn expansion<'a>(
+    tree: Option<&'a Tree>,
     e: &Elements,
-    clinks: &Links,
-    targets: &[u32],
+    clinks: &'a Links,
     vis: &Visibility,
     state: &State,
     eps: f64,
     s: &Settings,
-) -> Vec<Vec<(u32, f64, f64)>> {
-    let Some(t) = tree else {
-        return Vec::new();
-    };
+) -> Option<clusters::Expansion<'a>> {
+    let t = tree?;
     let visible = e.visible_areas();
     let rho_max = vec![0.0; e.roots];
     let f = refiner(t, e, &visible, &rho_max, vis, state, 0.0, eps, s);
-    let pieces = f.all_pieces(clinks, s.descend);
-    clusters::expand(t, e, clinks, &pieces, targets)
+    Some(clusters::Expansion {
+        tree: t,
+        links: clinks,
+        pieces: f.all_pieces(clinks, s.descend),
+    })
 }
 
 /// The cluster refinement's view of the current solution.
@@ -841,7 +857,7 @@ struct Entry {
 pub fn gather_lists(
     ctx: &Context,
     links: &[Vec<Link>],
-    extra: &[Vec<(u32, f64, f64)>],
+    extra: Option<&clusters::Expansion>,
     rho: &[[f64; 3]],
     state: &State,
     rel: Relative,
@@ -852,17 +868,20 @@ pub fn gather_lists(
     let (b, spread) = (&state.b, &state.spread);
     let leaves: Vec<u32> = e.leaves().collect();
     let n = (ctx.rays * ctx.rays) as f64;
-    // Per leaf: (source, factor, quadrature bound, visibility standard error) entries and
-    // the work spent.
-    type Entries = (Vec<(u32, f64, f64, f64)>, Cost);
-    let per_leaf: Vec<Entries> = leaves
+    // Per leaf: its list, factor sum with bar, carried bar, and the work spent. Each list
+    // is made compact as soon as it is built, so that only the compact lists are held.
+    type Built = (solve::List, (f64, Bar), Bar, Cost);
+    let per_leaf: Vec<Built> = leaves
         .par_iter()
-        .map(|&l| {
+        .map_init(Vec::new, |cluster, &l| {
             let li = l as usize;
+            // (source, factor, quadrature bound, visibility standard error) entries.
             let mut out: Vec<(u32, f64, f64, f64)> = Vec::new();
             let mut cost = Cost::default();
+            cluster.clear();
             if e.buried[li] {
-                return (out, cost);
+                let (list, sum, carried) = finish_list(e, li, &out, cluster, rho, state);
+                return (list, sum, carried, cost);
             }
             let (eps, k) = rel.weights(b[li]);
             let weight = |src: u32, x: &[[f64; 3]]| {
@@ -1042,66 +1061,86 @@ pub fn gather_lists(
                     }
                 }
             }
-            (out, cost)
+            if let Some(x) = extra {
+                x.entries(e, l, cluster);
+            }
+            let (list, sum, carried) = finish_list(e, li, &out, cluster, rho, state);
+            (list, sum, carried, cost)
         })
         .collect();
     let mut g = Gather {
         leaves,
-        start: Vec::with_capacity(per_leaf.len() + 1),
-        ..Default::default()
+        lists: Vec::with_capacity(per_leaf.len()),
+        row_sum: Vec::with_capacity(per_leaf.len()),
+        carried: Vec::with_capacity(per_leaf.len()),
     };
     let mut cost = Cost::default();
-    g.start.push(0);
-    for (k, (list, c)) in per_leaf.into_iter().enumerate() {
+    for (list, sum, carried, c) in per_leaf {
         cost += c;
-        let x = g.leaves[k] as usize;
-        // The entry's weight in the leaf's radiosity, `max over channels of ρ_l B_s`.
-        let w = |s: u32| {
-            let bs = state.source(s);
-            (0..3).map(|c| rho[x][c] * bs[c]).fold(0.0, f64::max)
-        };
-        let (mut sum, mut bound, mut var) = (0.0, 0.0, 0.0);
-        let (mut gathered, mut w_bound, mut w_var) = (0.0, 0.0, 0.0);
-        for (s, f, q, se) in list {
-            g.src.push(s);
-            g.f.push(f);
-            sum += f;
-            bound += q;
-            var += se * se;
-            let ws = w(s);
-            gathered += f * ws;
-            w_bound += q * ws;
-            w_var += (se * ws).powi(2);
-        }
-        for &(s, f, se) in extra.get(k).map_or(&[][..], Vec::as_slice) {
-            g.src.push(s);
-            g.f.push(f);
-            sum += f;
-            var += se * se;
-            let ws = w(s);
-            gathered += f * ws;
-            w_var += (se * ws).powi(2);
-        }
-        // A partly buried leaf's factors are divided by its measured exposed fraction, whose
-        // standard error scales them all alike.
-        if e.exposed[x] < 1.0 {
-            var += (sum * e.exposed_se[x] / e.exposed[x]).powi(2);
-            w_var += (gathered * e.exposed_se[x] / e.exposed[x]).powi(2);
-        }
-        g.carried.push(crate::matrix::Bar {
-            se: w_var.sqrt(),
-            bound: w_bound,
-        });
-        g.start.push(g.src.len());
-        g.row_sum.push((
+        g.lists.push(list);
+        g.row_sum.push(sum);
+        g.carried.push(carried);
+    }
+    (g, cost)
+}
+
+/// Leaf `x`'s compact gather list from its element entries `(source, factor, quadrature
+/// bound, standard error)` and its cluster entries `(source, factor, standard error)`,
+/// with its factor sum and bar and the bar of its reflected irradiance (each entry
+/// weighted by `max over channels of ρ_l B_s`).
+fn finish_list(
+    e: &Elements,
+    x: usize,
+    elements: &[(u32, f64, f64, f64)],
+    cluster: &[(u32, f64, f64)],
+    rho: &[[f64; 3]],
+    state: &State,
+) -> (solve::List, (f64, Bar), Bar) {
+    // The entry's weight in the leaf's radiosity, `max over channels of ρ_l B_s`.
+    let w = |s: u32| {
+        let bs = state.source(s);
+        (0..3).map(|c| rho[x][c] * bs[c]).fold(0.0, f64::max)
+    };
+    let mut src = Vec::with_capacity(elements.len() + cluster.len());
+    let mut fs = Vec::with_capacity(src.capacity());
+    let (mut sum, mut bound, mut var) = (0.0, 0.0, 0.0);
+    let (mut gathered, mut w_bound, mut w_var) = (0.0, 0.0, 0.0);
+    let cluster = cluster.iter().map(|&(s, f, se)| (s, f, 0.0, se));
+    for (s, f, q, se) in elements.iter().copied().chain(cluster) {
+        src.push(s);
+        fs.push(f);
+        sum += f;
+        bound += q;
+        var += se * se;
+        let ws = w(s);
+        gathered += f * ws;
+        w_bound += q * ws;
+        w_var += (se * ws).powi(2);
+    }
+    // A partly buried leaf's factors are divided by its measured exposed fraction, whose
+    // standard error scales them all alike.
+    if e.exposed[x] < 1.0 {
+        var += (sum * e.exposed_se[x] / e.exposed[x]).powi(2);
+        w_var += (gathered * e.exposed_se[x] / e.exposed[x]).powi(2);
+    }
+    let list = solve::List {
+        src: src.into_boxed_slice(),
+        f: fs.into_boxed_slice(),
+    };
+    (
+        list,
+        (
             sum,
-            crate::matrix::Bar {
+            Bar {
                 se: var.sqrt(),
                 bound,
             },
-        ));
-    }
-    (g, cost)
+        ),
+        Bar {
+            se: w_var.sqrt(),
+            bound: w_bound,
+        },
+    )
 }
 
 /// Carries per-leaf errors `d` (indexed like `g.leaves`) through the interreflections:
@@ -1132,10 +1171,9 @@ fn propagate(e: &Elements, g: &Gather, rho: &[[f64; 3]], d: &[f64]) -> Vec<f64> 
                 }
                 let r = rho[l].iter().copied().fold(0.0, f64::max);
                 let mut h = 0.0;
-                for j in g.start[k]..g.start[k + 1] {
-                    let s = g.src[j];
+                for (s, f) in g.lists[k].iter() {
                     if !clusters::is_cluster(s) {
-                        h += g.f[j] * x[s as usize];
+                        h += f * x[s as usize];
                     }
                 }
                 d[k] + r * h

@@ -93,18 +93,54 @@ pub struct Materials<'a> {
     pub emit: &'a [[f64; 3]],
 }
 
-/// Per-leaf gather lists: leaf `leaves[k]` gathers `Σ f[j] B[src[j]]` over
-/// `j in start[k]..start[k + 1]`.
+/// One element's gather list: `Σ f[j] B[src[j]]` over its entries, in this order (the
+/// sum's order, so the same bits on any number of threads). `src[j]` is an element, or a
+/// cluster node with [`super::clusters::CLUSTER`] set; `f[j]` the factor to it,
+/// visibility included. Held as two arrays of exact length, 12 bytes an entry: these
+/// lists are most of a large bake's memory. (Factors in `f32` would make it 8, but their
+/// rounding, 6e-8 relative, is above what `--quadrature` can ask of a factor.)
+#[derive(Clone, Debug, Default)]
+pub struct List {
+    /// Sources.
+    pub src: Box<[u32]>,
+    /// Factors.
+    pub f: Box<[f64]>,
+}
+
+impl List {
+    /// A list of `(source, factor)` entries.
+    pub fn new(entries: impl ExactSizeIterator<Item = (u32, f64)>) -> Self {
+        let (src, f): (Vec<u32>, Vec<f64>) = entries.unzip();
+        List {
+            src: src.into_boxed_slice(),
+            f: f.into_boxed_slice(),
+        }
+    }
+
+    /// Number of entries.
+    pub fn len(&self) -> usize {
+        self.src.len()
+    }
+
+    /// True when empty.
+    pub fn is_empty(&self) -> bool {
+        self.src.is_empty()
+    }
+
+    /// The entries.
+    pub fn iter(&self) -> impl Iterator<Item = (u32, f64)> + '_ {
+        self.src.iter().copied().zip(self.f.iter().copied())
+    }
+}
+
+/// Per-leaf gather lists: leaf `leaves[k]` gathers `Σ f B[src]` over `lists[k]`.
 #[derive(Clone, Debug, Default)]
 pub struct Gather {
     /// The leaves, in element order.
     pub leaves: Vec<u32>,
-    /// Offsets into `src` and `f`, one more than there are leaves.
-    pub start: Vec<usize>,
-    /// Source element of each entry.
-    pub src: Vec<u32>,
-    /// Factor of each entry (leaf to source, visibility included).
-    pub f: Vec<f64>,
+    /// Each leaf's entries, in a fixed order (the sum's order, so the same bits on any
+    /// number of threads).
+    pub lists: Vec<List>,
     /// Per leaf: the sum of its factors and its error bar (the entries' quadrature bounds
     /// added linearly, their visibility standard errors in quadrature:
     /// [`crate::matrix::Bar`]).
@@ -118,12 +154,22 @@ pub struct Gather {
 impl Gather {
     /// Number of entries.
     pub fn len(&self) -> usize {
-        self.src.len()
+        self.lists.iter().map(|l| l.len()).sum()
     }
 
     /// True when no leaf gathers anything.
     pub fn is_empty(&self) -> bool {
-        self.src.is_empty()
+        self.lists.iter().all(|l| l.is_empty())
+    }
+}
+
+/// Adds `Σ f B[src]` over `list` to `h`, per channel.
+fn gather_into(list: &List, state: &State, h: &mut [f64; 3]) {
+    for (src, f) in list.iter() {
+        let bs = state.source(src);
+        for c in 0..3 {
+            h[c] += f * bs[c];
+        }
     }
 }
 
@@ -154,12 +200,7 @@ pub fn solve(
                 return;
             }
             let mut h = [0.0; 3];
-            for j in g.start[k]..g.start[k + 1] {
-                let bs = state.source(g.src[j]);
-                for c in 0..3 {
-                    h[c] += g.f[j] * bs[c];
-                }
-            }
+            gather_into(&g.lists[k], state, &mut h);
             *out = (
                 std::array::from_fn(|c| m.emit[l][c] + m.rho[l][c] * h[c]),
                 h,
@@ -189,13 +230,13 @@ pub fn solve(
 /// irradiance is that of the element's unburied part), irradiance is pushed down
 /// unchanged, leaves get `B = E + ρ H`, then pull. Same stopping rule as [`solve`].
 ///
-/// With clusters, `extra[k]` lists root `k`'s cluster links as `(source node, factor, _)`
-/// entries ([`clusters::expand`] at the root's centre), gathered with its own links.
+/// With clusters, `extra[k]` lists root `k`'s cluster links as `(source node, factor)`
+/// entries ([`super::clusters::Expansion::entries`] of the root), gathered with its own links.
 #[allow(clippy::too_many_arguments)]
 pub fn solve_push(
     e: &Elements,
     tree: Option<&Tree>,
-    extra: &[Vec<(u32, f64, f64)>],
+    extra: &[List],
     links: &[Vec<super::link::Link>],
     m: &Materials,
     state: &mut State,
@@ -220,11 +261,8 @@ pub fn solve_push(
                     s[c] += l.f * bs[c];
                 }
             }
-            for &(src, f, _) in extra.get(p).map_or(&[][..], Vec::as_slice) {
-                let bs = state.source(src);
-                for c in 0..3 {
-                    s[c] += f * bs[c];
-                }
+            if let Some(list) = extra.get(p) {
+                gather_into(list, state, &mut s);
             }
             *g = s;
         });
