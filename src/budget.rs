@@ -97,6 +97,15 @@ pub fn gib(bytes: u64) -> String {
     format!("{:.2} GiB", bytes as f64 / (1u64 << 30) as f64)
 }
 
+/// Bytes as GiB with two decimals, or MiB below 1 GiB.
+pub fn size(bytes: u64) -> String {
+    if bytes < 1 << 30 {
+        format!("{:.1} MiB", bytes as f64 / (1u64 << 20) as f64)
+    } else {
+        gib(bytes)
+    }
+}
+
 /// Parses a memory size: bytes, or with a `K`, `M`, `G` or `T` suffix (powers of 1024).
 pub fn parse_bytes(s: &str) -> std::result::Result<u64, String> {
     let t = s.trim();

@@ -1140,6 +1140,25 @@ impl Expansion<'_> {
     }
 }
 
+impl Expansion<'_> {
+    /// Entries [`Expansion::entries`] gives at most for every element of root `r`: the
+    /// pieces of the cluster links on its chain.
+    pub fn pieces_on_chain(&self, r: u32) -> usize {
+        let t = self.tree;
+        let mut node = r;
+        let mut parent = t.root_parent.get(r as usize).copied().unwrap_or(NONE);
+        let mut n = 0;
+        loop {
+            n += self.pieces.of(node).iter().map(Vec::len).sum::<usize>();
+            if parent == NONE {
+                return n;
+            }
+            node = parent | CLUSTER;
+            parent = t.parent[parent as usize];
+        }
+    }
+}
+
 fn expand_into(
     t: &Tree,
     e: &Elements,

@@ -479,6 +479,7 @@ pub fn run(
         let stats = if last {
             let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
             let extra = expansion(tree, &e, &clinks, vis, &state, eps, s);
+            check_gather(&e, &links, extra.as_ref(), s)?;
             let (gather, cost) = gather_lists(
                 &ctx,
                 &links,
@@ -727,6 +728,90 @@ const BYTES_PER_INITIAL_PAIR: u64 = (std::mem::size_of::<(u32, u32)>()
 /// Bytes a link holds in its receiver's list, with room for the list's growth by doubling.
 const BYTES_PER_LINK: u64 = 2 * std::mem::size_of::<Link>() as u64;
 
+/// Bytes a leaf's gather list holds per entry: its source and factor ([`solve::List`]).
+const BYTES_PER_ENTRY: u64 = (std::mem::size_of::<u32>() + std::mem::size_of::<f64>()) as u64;
+
+/// Bytes a leaf holds besides its entries: its list's two arrays, its factor sum and bars,
+/// and the slot of its list while the lists are built.
+const BYTES_PER_LIST: u64 = (2 * std::mem::size_of::<solve::List>()
+    + 2 * std::mem::size_of::<Bar>()
+    + std::mem::size_of::<(f64, Cost)>()) as u64;
+
+/// The final gather's entries as estimated from the links: one for each link on a leaf's
+/// ancestor chain (its own included) and each piece of a cluster link on its root's chain.
+/// Sources the gather cuts into pieces add entries, and entries with no factor are left
+/// out. Measured (lists held / estimate): the Cornell box 3.3 (15.5 M / 4.7 M entries at the
+/// default `--error`; its split sources), the room with a sphere 1.35 (39.9 M / 29.5 M),
+/// `room-spheres-8` with clusters at `--error 0.05` 0.93 (19.8 M / 21.3 M).
+fn gather_entries(e: &Elements, links: &[Vec<Link>], extra: Option<&clusters::Expansion>) -> u64 {
+    // Per element, the links on its chain, parents first (they come before their children).
+    let mut chain = vec![0u64; e.len()];
+    for k in 0..e.len() {
+        let up = match e.parent[k] {
+            element::NONE => 0,
+            p => chain[p as usize],
+        };
+        chain[k] = up + links[k].len() as u64;
+    }
+    let pieces: Vec<u64> = match extra {
+        Some(x) => (0..e.roots as u32)
+            .into_par_iter()
+            .map(|r| x.pieces_on_chain(r) as u64)
+            .collect(),
+        None => vec![0; e.roots],
+    };
+    e.leaves()
+        .filter(|&l| !e.buried[l as usize])
+        .map(|l| chain[l as usize] + pieces[e.root[l as usize] as usize])
+        .sum()
+}
+
+/// Refuses the final gather when its lists, as [`gather_entries`] estimates them, do not
+/// fit: with `--max-memory`, beside the links held; else in the memory available now. A
+/// refusal names the settings that make fewer entries.
+fn check_gather(
+    e: &Elements,
+    links: &[Vec<Link>],
+    extra: Option<&clusters::Expansion>,
+    s: &Settings,
+) -> crate::Result<()> {
+    let Some((limit, source)) = budget::limit_of(s.max_memory) else {
+        return Ok(());
+    };
+    let held = if s.max_memory.is_some() {
+        links.iter().map(Vec::len).sum::<usize>() as u64 * BYTES_PER_LINK
+    } else {
+        0
+    };
+    let entries = gather_entries(e, links, extra);
+    let leaves = e.leaves().count() as u64;
+    let bytes = entries
+        .saturating_mul(BYTES_PER_ENTRY)
+        .saturating_add(leaves.saturating_mul(BYTES_PER_LIST));
+    if held.saturating_add(bytes) <= limit {
+        return Ok(());
+    }
+    let clusters = if s.clusters {
+        ""
+    } else {
+        ", --clusters on (links between groups of faces)"
+    };
+    Err(crate::Error::Config(format!(
+        "the final gather of the hierarchy needs about {entries} entries over {leaves} leaves \
+         (every link on a leaf's ancestor chain), about {}{}, more than the {} of {source}; use a \
+         larger --error (now {}) or --min-area{clusters}, or set --max-memory if the estimate \
+         is too pessimistic",
+        budget::size(bytes),
+        if held > 0 {
+            format!(" beside the links' {}", budget::size(held))
+        } else {
+            String::new()
+        },
+        budget::size(limit),
+        s.error
+    )))
+}
+
 /// Refuses, before any link is evaluated, an unclustered hierarchy whose candidate links
 /// between every pair of its `roots` root patches do not fit the memory limit (`max_memory`,
 /// else the available memory): a scene of 10^5 faces would ask for 10^10 of them.
@@ -752,14 +837,24 @@ fn check_initial_pairs(roots: usize, max_memory: Option<u64>) -> crate::Result<(
     )))
 }
 
+/// Gather entries to expect per link when the refinement's links are capped by memory:
+/// the final lists held 40 (the Cornell box), 43 (`room-spheres-8` with clusters) and 70
+/// (the room with a sphere) entries per link.
+const GATHER_ENTRIES_PER_LINK: u64 = 64;
+
+/// Memory a link is counted at while the refinement runs: its own bytes and its share of
+/// the final gather's lists ([`GATHER_ENTRIES_PER_LINK`] entries), which are most of it.
+pub const MEMORY_PER_LINK: u64 = BYTES_PER_LINK + GATHER_ENTRIES_PER_LINK * BYTES_PER_ENTRY;
+
 /// The most links the refinement may hold, `now` being held: what fits the memory limit
-/// at [`BYTES_PER_LINK`] each (`--max-memory` for the whole solution, else `now` plus
+/// at [`MEMORY_PER_LINK`] each (`--max-memory` for the whole solution, else `now` plus
 /// what the memory available now holds), and [`Settings::max_links`] at most. True when
-/// the memory sets it.
+/// the memory sets it. The final gather is checked against the limit again from the links
+/// it will expand ([`check_gather`]).
 fn link_cap(s: &Settings, now: usize) -> (usize, bool) {
     let room = match s.max_memory {
-        Some(limit) => limit / BYTES_PER_LINK,
-        None => budget::available().map_or(u64::MAX, |a| now as u64 + a / BYTES_PER_LINK),
+        Some(limit) => limit / MEMORY_PER_LINK,
+        None => budget::available().map_or(u64::MAX, |a| now as u64 + a / MEMORY_PER_LINK),
     };
     if room < s.max_links as u64 {
         (room as usize, true)
@@ -1383,4 +1478,60 @@ fn finish_report<'a>(
     );
     report.emitted = emitted;
     report.absorbed = absorbed;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::formfactor::exact::Piece;
+    use glam::DVec3;
+
+    /// A unit square split three levels down (64 leaves) whose root has 100 links: every
+    /// leaf gathers over all of them.
+    fn deep() -> (Elements, Vec<Vec<Link>>) {
+        let mut e = Elements::default();
+        e.add_root(
+            Piece::Quad([DVec3::ZERO, DVec3::X, DVec3::new(1.0, 1.0, 0.0), DVec3::Y]),
+            DVec3::Z,
+        );
+        let mut level = vec![0u32];
+        for _ in 0..3 {
+            level = level.iter().flat_map(|&p| e.split(p)).collect();
+        }
+        let link = Link {
+            src: 0,
+            f: 0.01,
+            err: 0.0,
+            se: 0.0,
+            df: 0.0,
+            partial: false,
+            vis: 1.0,
+            proved: true,
+            open: 0.01,
+        };
+        let mut links = vec![Vec::new(); e.len()];
+        links[0] = vec![link; 100];
+        (e, links)
+    }
+
+    #[test]
+    fn the_gather_is_estimated_and_refused_when_it_does_not_fit() {
+        let (e, links) = deep();
+        assert_eq!(e.leaves().count(), 64);
+        assert_eq!(gather_entries(&e, &links, None), 6_400);
+        let held = 100 * BYTES_PER_LINK;
+        let lists = 6_400 * BYTES_PER_ENTRY + 64 * BYTES_PER_LIST;
+        let with = |bytes: u64| Settings {
+            error: 0.03,
+            max_memory: Some(bytes),
+            ..Settings::default()
+        };
+        assert!(check_gather(&e, &links, None, &with(held + lists)).is_ok());
+        let msg = check_gather(&e, &links, None, &with(held + lists - 1))
+            .unwrap_err()
+            .to_string();
+        assert!(msg.contains("6400 entries over 64 leaves"), "{msg}");
+        assert!(msg.contains("--error (now 0.03)"), "{msg}");
+        assert!(msg.contains("--clusters on"), "{msg}");
+    }
 }
