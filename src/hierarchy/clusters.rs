@@ -1136,60 +1136,41 @@ impl Expansion<'_> {
     /// element's entries is held at once (at 10^5 triangles they were most of the bake's
     /// memory).
     pub fn entries(&self, e: &Elements, l: u32, out: &mut Vec<(u32, f64, f64)>) {
-        expand_into(self.tree, e, self.links, &self.pieces, l, out);
-    }
-}
-
-impl Expansion<'_> {
-    /// Entries [`Expansion::entries`] gives at most for every element of root `r`: the
-    /// pieces of the cluster links on its chain.
-    pub fn pieces_on_chain(&self, r: u32) -> usize {
-        let t = self.tree;
-        let mut node = r;
-        let mut parent = t.root_parent.get(r as usize).copied().unwrap_or(NONE);
-        let mut n = 0;
-        loop {
-            n += self.pieces.of(node).iter().map(Vec::len).sum::<usize>();
-            if parent == NONE {
-                return n;
-            }
-            node = parent | CLUSTER;
-            parent = t.parent[parent as usize];
+        if e.buried[l as usize] || self.links.is_empty() {
+            return;
         }
-    }
-}
-
-fn expand_into(
-    t: &Tree,
-    e: &Elements,
-    links: &Links,
-    pieces: &Pieces,
-    l: u32,
-    out: &mut Vec<(u32, f64, f64)>,
-) {
-    let li = l as usize;
-    if e.buried[li] || links.is_empty() {
-        return;
-    }
-    let root = e.root[li];
-    let mut node = root;
-    let mut parent = t.root_parent.get(root as usize).copied().unwrap_or(NONE);
-    loop {
-        for (k, ps) in links.into_node(node).iter().zip(pieces.of(node)) {
-            let rel = k.v_se / k.v.max(1e-300);
-            for p in ps {
-                let (f, se) = piece_factor(p, k.v, e, l);
-                if f > 0.0 {
-                    out.push((p.node, f, (f * rel).hypot(se)));
+        for node in chain(self.tree, e.root[l as usize]) {
+            for (k, ps) in self.links.into_node(node).iter().zip(self.pieces.of(node)) {
+                let rel = k.v_se / k.v.max(1e-300);
+                for p in ps {
+                    let (f, se) = piece_factor(p, k.v, e, l);
+                    if f > 0.0 {
+                        out.push((p.node, f, (f * rel).hypot(se)));
+                    }
                 }
             }
         }
-        if parent == NONE {
-            break;
-        }
-        node = parent | CLUSTER;
-        parent = t.parent[parent as usize];
     }
+
+    /// Entries [`Expansion::entries`] gives at most for every element of root `r`: the
+    /// pieces of the cluster links on its chain.
+    pub fn pieces_on_chain(&self, r: u32) -> usize {
+        chain(self.tree, r)
+            .map(|node| self.pieces.of(node).iter().map(Vec::len).sum::<usize>())
+            .sum()
+    }
+}
+
+/// Root `r` and the clusters above it, as nodes, from `r` up.
+fn chain(t: &Tree, r: u32) -> impl Iterator<Item = u32> + '_ {
+    let first = t.root_parent.get(r as usize).copied().unwrap_or(NONE);
+    std::iter::once(r).chain(
+        std::iter::successors((first != NONE).then_some(first), move |&c| {
+            let p = t.parent[c as usize];
+            (p != NONE).then_some(p)
+        })
+        .map(|c| c | CLUSTER),
+    )
 }
 
 #[cfg(test)]
