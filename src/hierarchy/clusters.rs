@@ -687,10 +687,14 @@ impl Refiner<'_> {
             .sum()
     }
 
-    /// A point of node `n` drawn by area, its normal and its area weight (Jacobian over
-    /// the root's area).
-    fn sample(&self, n: u32, rng: &mut Pcg32) -> Option<(DVec3, DVec3, f64)> {
+    /// A point of node `n` drawn by visible area: the point, its normal, its area weight
+    /// (Jacobian over the root's area) and the exposed fraction of the leaf it lies on
+    /// (below 1 on a partly buried leaf: [`Elements::exposed`]). A root is drawn by its
+    /// visible area; on a split root, points on buried leaves are drawn again (within
+    /// [`super::link::BURIED_TRIES`] draws, else `None`).
+    fn sample(&self, n: u32, rng: &mut Pcg32) -> Option<(DVec3, DVec3, f64, f64)> {
         let t = self.tree;
+        let e = self.elements;
         let (roots, lo, a, b) = t.area_span(n);
         if b <= a {
             return None;
@@ -698,14 +702,32 @@ impl Refiner<'_> {
         let x = a + rng.next_f64() * (b - a);
         let k = t.cum[lo + 1..lo + roots.len()].partition_point(|&c| c <= x);
         let m = roots[k.min(roots.len() - 1)];
-        let (p, j) = self.elements.point(m, rng.next_f64(), rng.next_f64());
-        let area = self.elements.area[m as usize];
-        Some((p, self.elements.normal[m as usize], j / area.max(1e-300)))
+        for _ in 0..super::link::BURIED_TRIES {
+            let (u, v) = (rng.next_f64(), rng.next_f64());
+            let leaf = e.locate(m, u, v).0 as usize;
+            if !e.buried[leaf] {
+                let (p, j) = e.point(m, u, v);
+                let area = e.area[m as usize];
+                return Some((
+                    p,
+                    e.normal[m as usize],
+                    j / area.max(1e-300),
+                    e.exposed[leaf],
+                ));
+            }
+        }
+        None
     }
 
     /// Kernel-weighted visible fraction between nodes `r` and `s` from `rays²` segments
     /// between area-sampled points (a transmittance estimate; pairs that do not face each
-    /// other carry no weight and cast no ray).
+    /// other carry no weight and cast no ray). A point on a partly buried leaf may lie
+    /// inside the solid, where its ray is blocked as expected and says nothing of the
+    /// pair's shadow: each segment's weight counts in the denominator times the exposed
+    /// fractions of its two ends (their chance of lying outside), as a partly buried
+    /// leaf's element factors are divided by its exposed fraction. Without it, the
+    /// ceiling's root around the light of `room-spheres-8` (45% of it above the light)
+    /// summed its factors to 0.960 clustered against 1.004 unclustered.
     fn transmittance(&self, r: u32, s: u32) -> Seen {
         let mut rng = Pcg32::keyed(
             self.seed,
@@ -717,7 +739,7 @@ impl Refiner<'_> {
         let mut segs: Vec<SegmentRay> = Vec::with_capacity(cells);
         let mut weights = Vec::with_capacity(cells);
         for _ in 0..cells {
-            let (Some((x, nx, jx)), Some((y, ny, jy))) =
+            let (Some((x, nx, jx, ex)), Some((y, ny, jy, ey))) =
                 (self.sample(r, &mut rng), self.sample(s, &mut rng))
             else {
                 continue;
@@ -725,7 +747,7 @@ impl Refiner<'_> {
             let Some(w) = super::link::kernel_weight((x, nx, jx), (y, ny, jy)) else {
                 continue;
             };
-            weights.push(w);
+            weights.push((w, ex * ey));
             segs.push(self.vis.segment_ray(x, nx, y, ny));
         }
         if segs.is_empty() {
@@ -739,15 +761,15 @@ impl Refiner<'_> {
         let mut free = vec![false; segs.len()];
         self.vis.segments_visible(&segs, &mut free);
         let (mut num, mut den) = (0.0, 0.0);
-        for (w, &f) in weights.iter().zip(&free) {
-            den += w;
+        for (&(w, exposed), &f) in weights.iter().zip(&free) {
+            den += w * exposed;
             if f {
                 num += w;
             }
         }
         let nfree = free.iter().filter(|&&f| f).count();
         Seen {
-            v: if den > 0.0 { num / den } else { 0.0 },
+            v: if den > 0.0 { (num / den).min(1.0) } else { 0.0 },
             free: nfree,
             blocked: free.len() - nfree,
             rays: segs.len() as u64,

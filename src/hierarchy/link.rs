@@ -306,7 +306,7 @@ pub struct Seen {
 }
 
 /// Tries per stratum at finding a receiver point that is not buried.
-const BURIED_TRIES: usize = 4;
+pub(super) const BURIED_TRIES: usize = 4;
 
 /// Kernel-weighted visible fraction between `r` and `s` from `rays²` traced segments.
 ///
