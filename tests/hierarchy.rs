@@ -191,26 +191,34 @@ fn shelf_table_on_the_hierarchy() {
     }
 }
 
-/// The same seed gives the same hierarchy and the same bits on 1 and 2 threads.
+/// The same seed gives the same hierarchy and the same bits on 1 and 2 threads, with and
+/// without clusters.
 #[test]
 fn same_bits_on_any_thread_count() {
-    let s = Settings {
-        error: 0.04,
-        ..Settings::default()
-    };
-    let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .expect("pool");
-        pool.install(|| solve("cornell", Resolution::DiagonalFraction(0.5), &s).1)
-    };
-    let (a, b) = (run(1), run(2));
-    assert_eq!(a.elements.len(), b.elements.len());
-    assert_eq!(a.report.links, b.report.links);
-    assert_eq!(a.report.rays, b.report.rays);
-    for (x, y) in a.state.b.iter().zip(&b.state.b) {
-        assert_eq!(x.map(f64::to_bits), y.map(f64::to_bits));
+    for clusters in [false, true] {
+        let s = Settings {
+            error: 0.04,
+            clusters,
+            ..Settings::default()
+        };
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("pool");
+            pool.install(|| solve("cornell", Resolution::DiagonalFraction(0.5), &s).1)
+        };
+        let (a, b) = (run(1), run(2));
+        assert_eq!(a.elements.len(), b.elements.len(), "clusters {clusters}");
+        assert_eq!(a.report.links, b.report.links, "clusters {clusters}");
+        assert_eq!(a.report.rays, b.report.rays, "clusters {clusters}");
+        for (x, y) in a.state.b.iter().zip(&b.state.b) {
+            assert_eq!(
+                x.map(f64::to_bits),
+                y.map(f64::to_bits),
+                "clusters {clusters}"
+            );
+        }
     }
 }
 

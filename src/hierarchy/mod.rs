@@ -39,6 +39,7 @@ pub mod leaves;
 pub mod link;
 pub mod refine;
 pub mod solve;
+pub mod transfer;
 
 use std::time::Instant;
 
@@ -517,21 +518,11 @@ pub fn run(
             error = propagate(&e, &gather, &rho, &carried);
             st
         } else {
-            let extra: Vec<solve::List> = match expansion(tree, &e, &clinks, vis, &state, eps, s) {
-                Some(x) => (0..e.roots as u32)
-                    .into_par_iter()
-                    .map_init(Vec::new, |buf, r| {
-                        buf.clear();
-                        x.entries(&e, r, buf);
-                        solve::List::new(buf.iter().map(|&(src, f, _)| (src, f)))
-                    })
-                    .collect(),
-                None => Vec::new(),
-            };
+            let extra = transfer(tree, &e, &clinks, vis, &state, eps, s);
             solve::solve_push(
                 &e,
                 tree,
-                &extra,
+                extra.as_ref(),
                 &links,
                 &m,
                 &mut state,
@@ -616,6 +607,24 @@ fn expansion<'a>(
         links: clinks,
         pieces: f.all_pieces(clinks, s.descend),
     })
+}
+
+/// The cluster links gathered node by node ([`transfer`]); none without clusters.
+fn transfer(
+    tree: Option<&Tree>,
+    e: &Elements,
+    clinks: &Links,
+    vis: &Visibility,
+    state: &State,
+    eps: f64,
+    s: &Settings,
+) -> Option<transfer::Transfer> {
+    let t = tree?;
+    let visible = e.visible_areas();
+    let rho_max = vec![0.0; e.roots];
+    let mut f = refiner(t, e, &visible, &rho_max, vis, state, 0.0, eps, s);
+    f.points = 0;
+    Some(transfer::Transfer::build(&f, clinks, s.descend))
 }
 
 /// The cluster refinement's view of the current solution.

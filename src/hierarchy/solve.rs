@@ -230,13 +230,13 @@ pub fn solve(
 /// irradiance is that of the element's unburied part), irradiance is pushed down
 /// unchanged, leaves get `B = E + ρ H`, then pull. Same stopping rule as [`solve`].
 ///
-/// With clusters, `extra[k]` lists root `k`'s cluster links as `(source node, factor)`
-/// entries ([`super::clusters::Expansion::entries`] of the root), gathered with its own links.
+/// With clusters, `extra` brings each root the irradiance of the cluster links on its
+/// chain, gathered node by node ([`super::transfer`]), added to what its own links bring.
 #[allow(clippy::too_many_arguments)]
 pub fn solve_push(
     e: &Elements,
     tree: Option<&Tree>,
-    extra: &[List],
+    extra: Option<&super::transfer::Transfer>,
     links: &[Vec<super::link::Link>],
     m: &Materials,
     state: &mut State,
@@ -253,6 +253,10 @@ pub fn solve_push(
     let mut down = vec![[0.0f64; 3]; n];
     for it in 0..max_iterations.max(1) {
         // 1. Gather, from the previous iteration's radiosities.
+        let from_clusters = match (extra, tree) {
+            (Some(x), Some(t)) => x.gather(t, e, state),
+            _ => Vec::new(),
+        };
         gathered.par_iter_mut().enumerate().for_each(|(p, g)| {
             let mut s = [0.0; 3];
             for l in &links[p] {
@@ -261,8 +265,10 @@ pub fn solve_push(
                     s[c] += l.f * bs[c];
                 }
             }
-            if let Some(list) = extra.get(p) {
-                gather_into(list, state, &mut s);
+            if let Some(h) = from_clusters.get(p) {
+                for c in 0..3 {
+                    s[c] += h[c];
+                }
             }
             *g = s;
         });
