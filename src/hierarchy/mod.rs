@@ -656,6 +656,7 @@ fn refiner<'a>(
         seed: s.seed,
         accuracy: s.cluster_accuracy,
         points: clusters::POINTS,
+        moments: std::sync::OnceLock::new(),
     }
 }
 
