@@ -15,6 +15,10 @@
 //! `roots → contact splits, buried leaves → links between roots →
 //!  (refine links ⇄ solve) until stable → leaf mesh → output`.
 //!
+//! With clusters ([`clusters`]) the start is one self-link of a tree of groups of roots;
+//! the passes gather cluster links node by node ([`transfer`]), and the last one leaf by
+//! leaf with near-field factors.
+//!
 //! The result is a set of leaves of very different sizes: large where light is smooth,
 //! down to the minimum area along shadow boundaries, contacts and bright nearby sources.
 //! [`leaves`] turns them into a mesh without T-vertex cracks for the output stage.
