@@ -854,7 +854,7 @@ fn check_initial_pairs(roots: usize, max_memory: Option<u64>) -> crate::Result<(
 /// Gather entries to expect per link when the refinement's links are capped by memory:
 /// the final lists held 40 (the Cornell box), 43 (`room-spheres-8` with clusters) and 70
 /// (the room with a sphere) entries per link.
-const GATHER_ENTRIES_PER_LINK: u64 = 64;
+pub const GATHER_ENTRIES_PER_LINK: u64 = 64;
 
 /// Memory a link is counted at while the refinement runs: its own bytes and its share of
 /// the final gather's lists ([`GATHER_ENTRIES_PER_LINK`] entries), which are most of it.
