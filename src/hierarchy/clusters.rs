@@ -880,9 +880,10 @@ pub struct Piece {
     pub at: DVec3,
     /// Its projected area `P_n(w)` toward the receiver's centre.
     pub p: f64,
-    /// Points drawn over its roots by visible area, for the near-field correction
-    /// ([`piece_factor`]).
-    pub samples: Vec<Sample>,
+    /// The direction `w` from its centre to the receiver's. Its near-field points
+    /// ([`sample_points`], keyed on the receiving node and this node) are drawn where
+    /// they are used, not held: at 10^5 triangles they took about 2 GB.
+    pub w: DVec3,
 }
 
 /// A point of a piece's source: `weight` is its share of the piece's visible area (the
@@ -948,30 +949,15 @@ impl Refiner<'_> {
             {
                 stack.extend(self.tree.children[(n & !CLUSTER) as usize]);
             } else {
-                let samples = self.samples(r, n, w);
                 out.push(Piece {
                     node: n,
                     at: c,
                     p,
-                    samples,
+                    w,
                 });
             }
         }
         out
-    }
-
-    /// [`sample_points`] of node `n` for the receiver `r`.
-    fn samples(&self, r: u32, n: u32, w: DVec3) -> Vec<Sample> {
-        sample_points(
-            self.tree,
-            self.elements,
-            self.visible,
-            self.seed,
-            self.points,
-            r,
-            n,
-            w,
-        )
     }
 
     /// [`Refiner::pieces`] of every link.
@@ -1164,7 +1150,7 @@ pub fn solid_angle(y: DVec3, poly: &[DVec3], n: DVec3) -> f64 {
 /// close already (the two terms of each point agree in the far field). Its standard
 /// error is that of the mean of the points' differences (conservative for stratified
 /// points). With no points, the point estimate and no sampling error.
-pub fn piece_factor(piece: &Piece, v: f64, e: &Elements, l: u32) -> (f64, f64) {
+pub fn piece_factor(piece: &Piece, samples: &[Sample], v: f64, e: &Elements, l: u32) -> (f64, f64) {
     let li = l as usize;
     let a = e.area[li];
     if a <= 0.0 {
@@ -1173,7 +1159,7 @@ pub fn piece_factor(piece: &Piece, v: f64, e: &Elements, l: u32) -> (f64, f64) {
     let poly = e.corners(l);
     let cone = solid_angle(piece.at, poly, e.normal[li]) / std::f64::consts::PI;
     let base = piece.p * cone;
-    let k = piece.samples.len();
+    let k = samples.len();
     if k == 0 {
         return (v * base / a, 0.0);
     }
@@ -1183,7 +1169,7 @@ pub fn piece_factor(piece: &Piece, v: f64, e: &Elements, l: u32) -> (f64, f64) {
         centroid: e.centre[li],
     };
     let (mut sum, mut sum2) = (0.0, 0.0);
-    for s in &piece.samples {
+    for s in samples {
         let g = point_factor(s.at, e.normal[s.root as usize], &rec);
         let d = s.weight * g - s.facing * cone;
         sum += d;
@@ -1208,6 +1194,12 @@ pub struct Expansion<'a> {
     pub links: &'a Links,
     /// Their sources' pieces ([`Refiner::all_pieces`]).
     pub pieces: Pieces,
+    /// Visible area per element (the pieces' points are drawn by it).
+    pub visible: Vec<f64>,
+    /// Seed of the points' streams.
+    pub seed: u64,
+    /// Points per piece ([`POINTS`]).
+    pub points: usize,
 }
 
 impl Expansion<'_> {
@@ -1218,15 +1210,41 @@ impl Expansion<'_> {
     /// element. Called per element where its list is used, so that no list of every
     /// element's entries is held at once (at 10^5 triangles they were most of the bake's
     /// memory).
-    pub fn entries(&self, e: &Elements, l: u32, out: &mut Vec<(u32, f64, f64)>) {
+    pub fn entries(
+        &self,
+        e: &Elements,
+        l: u32,
+        out: &mut Vec<(u32, f64, f64)>,
+        cache: &mut PointCache,
+    ) {
         if e.buried[l as usize] || self.links.is_empty() {
             return;
         }
         for node in chain(self.tree, e.root[l as usize]) {
+            let points = cache.of(node, || {
+                let mut all = Vec::new();
+                for ps in self.pieces.of(node) {
+                    for p in ps {
+                        all.push(sample_points(
+                            self.tree,
+                            e,
+                            &self.visible,
+                            self.seed,
+                            self.points,
+                            node,
+                            p.node,
+                            p.w,
+                        ));
+                    }
+                }
+                all
+            });
+            let mut at = 0;
             for (k, ps) in self.links.into_node(node).iter().zip(self.pieces.of(node)) {
                 let rel = k.v_se / k.v.max(1e-300);
                 for p in ps {
-                    let (f, se) = piece_factor(p, k.v, e, l);
+                    let (f, se) = piece_factor(p, &points[at], k.v, e, l);
+                    at += 1;
                     if f > 0.0 {
                         out.push((p.node, f, (f * rel).hypot(se)));
                     }
@@ -1241,6 +1259,30 @@ impl Expansion<'_> {
         chain(self.tree, r)
             .map(|node| self.pieces.of(node).iter().map(Vec::len).sum::<usize>())
             .sum()
+    }
+}
+
+/// The near-field points of the pieces of the links into recently used nodes
+/// ([`Expansion::entries`]): a leaf's neighbours in element order share most of its chain
+/// of clusters, and the points depend only on the node and the piece, so one thread draws
+/// them once per run of leaves instead of once per leaf. Bounded: emptied past
+/// [`PointCache::NODES`] nodes.
+#[derive(Debug, Default)]
+pub struct PointCache {
+    nodes: std::collections::HashMap<u32, Vec<Vec<Sample>>>,
+}
+
+impl PointCache {
+    /// Most nodes held.
+    pub const NODES: usize = 256;
+
+    /// The points of node `n`'s pieces (links in order, pieces in order), drawn by `draw`
+    /// when not held.
+    fn of(&mut self, n: u32, draw: impl FnOnce() -> Vec<Vec<Sample>>) -> &[Vec<Sample>] {
+        if !self.nodes.contains_key(&n) && self.nodes.len() >= Self::NODES {
+            self.nodes.clear();
+        }
+        self.nodes.entry(n).or_insert_with(draw)
     }
 }
 
@@ -1393,21 +1435,21 @@ mod tests {
             let t = Tree::build(&e, &vis, &[0.5, 0.5]);
             let exact = crate::analytic::parallel_rectangles(1.0, 1.0, c);
             let w = DVec3::Z;
-            let piece = |samples| Piece {
+            let piece = Piece {
                 node: 0,
                 at: e.centre[0],
                 p: 1.0,
-                samples,
+                w,
             };
-            let point = piece_factor(&piece(Vec::new()), 1.0, &e, 1).0;
+            let point = piece_factor(&piece, &[], 1.0, &e, 1).0;
             assert!(point > exact * 1.01, "c {c}: point {point} vs {exact}");
             // Over many streams the mean is the exact factor, and each estimate's
             // standard error covers its spread.
             let runs = 400;
             let (mut sum, mut sq_err, mut se2) = (0.0, 0.0, 0.0);
             for r in 0..runs {
-                let p = piece(sample_points(&t, &e, &vis, 1, POINTS, r, 0, w));
-                let (f, se) = piece_factor(&p, 1.0, &e, 1);
+                let samples = sample_points(&t, &e, &vis, 1, POINTS, r, 0, w);
+                let (f, se) = piece_factor(&piece, &samples, 1.0, &e, 1);
                 sum += f;
                 sq_err += (f - exact).powi(2);
                 se2 += se * se;

@@ -606,10 +606,14 @@ fn expansion<'a>(
     let visible = e.visible_areas();
     let rho_max = vec![0.0; e.roots];
     let f = refiner(t, e, &visible, &rho_max, vis, state, 0.0, eps, s);
+    let pieces = f.all_pieces(clinks, s.descend);
     Some(clusters::Expansion {
         tree: t,
         links: clinks,
-        pieces: f.all_pieces(clinks, s.descend),
+        pieces,
+        seed: f.seed,
+        points: f.points,
+        visible,
     })
 }
 
@@ -982,200 +986,203 @@ pub fn gather_lists(
     type Built = (solve::List, (f64, Bar), Bar, Cost);
     let per_leaf: Vec<Built> = leaves
         .par_iter()
-        .map_init(Vec::new, |cluster, &l| {
-            let li = l as usize;
-            // (source, factor, quadrature bound, visibility standard error) entries.
-            let mut out: Vec<(u32, f64, f64, f64)> = Vec::new();
-            let mut cost = Cost::default();
-            cluster.clear();
-            if e.buried[li] {
-                let (list, sum, carried) = finish_list(e, li, &out, cluster, rho, state);
-                return (list, sum, carried, cost);
-            }
-            let (eps, k) = rel.weights(b[li]);
-            let weight = |src: u32, x: &[[f64; 3]]| {
-                (0..3)
-                    .map(|c| k[c] * rho[li][c] * x[src as usize][c])
-                    .fold(0.0, f64::max)
-            };
-            let f_tol = |src: u32| {
-                let w = weight(src, b);
-                if w > 0.0 {
-                    accuracy * eps / w
-                } else {
-                    f64::INFINITY
+        .map_init(
+            || (Vec::new(), clusters::PointCache::default()),
+            |(cluster, points), &l| {
+                let li = l as usize;
+                // (source, factor, quadrature bound, visibility standard error) entries.
+                let mut out: Vec<(u32, f64, f64, f64)> = Vec::new();
+                let mut cost = Cost::default();
+                cluster.clear();
+                if e.buried[li] {
+                    let (list, sum, carried) = finish_list(e, li, &out, cluster, rho, state);
+                    return (list, sum, carried, cost);
                 }
-            };
-            // The leaf's factor to `src` with its visibility: given, checked (a link found
-            // visible from an ancestor, confirmed by `CHECK_RAYS²` rays from the leaf,
-            // else traced), or traced.
-            let piece = |src: u32, v: Sight, cost: &mut Cost| -> Option<Entry> {
-                let t = f_tol(src);
-                let open = link::open_factor(ctx, l, src, t);
-                let (f, q_err) = (open.value, open.err);
-                cost.evals += open.evals;
-                if f <= 0.0 {
-                    return None;
-                }
-                // A traced fraction's relative bar: `se(v) / v` on `f v`.
-                let relative = |v: f64, rays: f64| fraction_se(v, rays) / v.max(1e-300);
-                // A partly buried leaf's rays from inside the solid are blocked as expected
-                // (see `link::visible_fraction_partly`).
-                let trace = |cost: &mut Cost| {
-                    let seen = if e.partly[li] {
-                        link::visible_fraction_partly(ctx, l, src, ctx.rays, Some(f))
-                    } else {
-                        link::visible_fraction(ctx, l, src, Some(f))
-                    };
-                    cost.rays += seen.rays;
-                    (seen.v, relative(seen.v, n), true)
+                let (eps, k) = rel.weights(b[li]);
+                let weight = |src: u32, x: &[[f64; 3]]| {
+                    (0..3)
+                        .map(|c| k[c] * rho[li][c] * x[src as usize][c])
+                        .fold(0.0, f64::max)
                 };
-                let (v, v_bar, traced) = match v {
-                    Sight::Given(v, bar) => (v, bar, false),
-                    Sight::Trace => trace(cost),
-                    Sight::Again => {
-                        let seen = link::visible_fraction_again(ctx, l, src, Some(f));
-                        cost.rays += seen.rays;
-                        (seen.v, relative(seen.v, n), true)
+                let f_tol = |src: u32| {
+                    let w = weight(src, b);
+                    if w > 0.0 {
+                        accuracy * eps / w
+                    } else {
+                        f64::INFINITY
                     }
-                    Sight::TraceWith(m) => {
+                };
+                // The leaf's factor to `src` with its visibility: given, checked (a link found
+                // visible from an ancestor, confirmed by `CHECK_RAYS²` rays from the leaf,
+                // else traced), or traced.
+                let piece = |src: u32, v: Sight, cost: &mut Cost| -> Option<Entry> {
+                    let t = f_tol(src);
+                    let open = link::open_factor(ctx, l, src, t);
+                    let (f, q_err) = (open.value, open.err);
+                    cost.evals += open.evals;
+                    if f <= 0.0 {
+                        return None;
+                    }
+                    // A traced fraction's relative bar: `se(v) / v` on `f v`.
+                    let relative = |v: f64, rays: f64| fraction_se(v, rays) / v.max(1e-300);
+                    // A partly buried leaf's rays from inside the solid are blocked as expected
+                    // (see `link::visible_fraction_partly`).
+                    let trace = |cost: &mut Cost| {
                         let seen = if e.partly[li] {
-                            link::visible_fraction_partly(ctx, l, src, m, Some(f))
+                            link::visible_fraction_partly(ctx, l, src, ctx.rays, Some(f))
                         } else {
-                            link::visible_fraction_n(ctx, l, src, m, Some(f))
+                            link::visible_fraction(ctx, l, src, Some(f))
                         };
                         cost.rays += seen.rays;
-                        (seen.v, relative(seen.v, (m * m) as f64), true)
-                    }
-                    Sight::Check(v, bar) => {
-                        let seen = link::visible_fraction_n(ctx, l, src, CHECK_RAYS, Some(f));
-                        cost.rays += seen.rays;
-                        if seen.v >= 1.0 {
-                            // What the leaf knows of its own view is these `CHECK_RAYS²`
-                            // free rays, not the ancestor's: the bar is at least theirs.
-                            // Taking the fraction 1 when they all come out free (and
-                            // tracing otherwise) is biased high by `v^n (1 - v)` for a leaf
-                            // whose true fraction is `v` (at most 0.08 for n = 4), inside
-                            // that bar (0.15 relative for 4 free rays); with the
-                            // ancestor's bar alone, 21 leaves of the room with a sphere
-                            // summed their factors over 1 beyond 3 bars.
-                            (
-                                v,
-                                bar.max(relative(1.0, (CHECK_RAYS * CHECK_RAYS) as f64)),
-                                false,
-                            )
-                        } else {
-                            trace(cost)
-                        }
-                    }
-                };
-                (v > 0.0).then_some(Entry {
-                    src,
-                    f: f * v,
-                    v,
-                    v_bar,
-                    // The quadrature's own estimate: the integral stops at the looser of
-                    // the relative tolerance and `t`.
-                    q_bar: q_err * v,
-                    traced,
-                    open: f,
-                })
-            };
-            // A partly buried leaf traces every entry: its rays from points inside the solid
-            // are blocked, so its traced factors are per whole area, and are divided by its
-            // exposed fraction below (a factor is per visible area).
-            let exposed = e.exposed[li];
-            let partly = exposed < 1.0;
-            let mut stack: Vec<Entry> = if partly {
-                links[li]
-                    .iter()
-                    .filter_map(|k| piece(k.src, Sight::Trace, &mut cost))
-                    .collect()
-            } else {
-                // The leaf's own links as they are where they were proved unoccluded; traced
-                // again where rays decided them (whether a link was partly visible, and so
-                // refined further, hung on those rays: kept, their estimate would be biased
-                // low for partly visible links and high for those all of whose rays were
-                // free).
-                links[li]
-                    .iter()
-                    .filter_map(|k| {
-                        if k.proved {
-                            Some(Entry {
-                                src: k.src,
-                                f: k.f,
-                                v: k.vis,
-                                v_bar: 0.0,
-                                q_bar: k.err,
-                                traced: false,
-                                open: k.open,
-                            })
-                        } else {
-                            piece(k.src, Sight::Again, &mut cost)
-                        }
-                    })
-                    .collect()
-            };
-            let mut a = e.parent[li];
-            while a != element::NONE {
-                for k in &links[a as usize] {
-                    // A partly visible link says nothing of where in `a` its shadow falls:
-                    // the leaf's own visible fraction is traced (streams keyed on the leaf
-                    // and the source, as for a link). Nor does a link that rays found
-                    // visible from `a` prove that the leaf sees all of `s` (a leaf beside a
-                    // box sees less of the wall behind it than its parent): unless the
-                    // blockers' proof holds for the ancestor's link (then for every piece of
-                    // the pair) or for the leaf itself, it checks its own.
-                    let bar = if k.f > 0.0 { k.se / k.f } else { 0.0 };
-                    let v = if k.partial || partly {
-                        Sight::Trace
-                    } else if k.proved
-                        || ctx.blockers.unoccluded_within(
-                            e.corners(l),
-                            e.root[li],
-                            e.corners(k.src),
-                            e.root[k.src as usize],
-                            link::PROOF_BUDGET,
-                        ) == Some(true)
-                    {
-                        Sight::Given(k.vis, bar)
-                    } else {
-                        Sight::Check(k.vis, bar)
+                        (seen.v, relative(seen.v, n), true)
                     };
-                    if let Some(en) = piece(k.src, v, &mut cost) {
-                        stack.push(en);
+                    let (v, v_bar, traced) = match v {
+                        Sight::Given(v, bar) => (v, bar, false),
+                        Sight::Trace => trace(cost),
+                        Sight::Again => {
+                            let seen = link::visible_fraction_again(ctx, l, src, Some(f));
+                            cost.rays += seen.rays;
+                            (seen.v, relative(seen.v, n), true)
+                        }
+                        Sight::TraceWith(m) => {
+                            let seen = if e.partly[li] {
+                                link::visible_fraction_partly(ctx, l, src, m, Some(f))
+                            } else {
+                                link::visible_fraction_n(ctx, l, src, m, Some(f))
+                            };
+                            cost.rays += seen.rays;
+                            (seen.v, relative(seen.v, (m * m) as f64), true)
+                        }
+                        Sight::Check(v, bar) => {
+                            let seen = link::visible_fraction_n(ctx, l, src, CHECK_RAYS, Some(f));
+                            cost.rays += seen.rays;
+                            if seen.v >= 1.0 {
+                                // What the leaf knows of its own view is these `CHECK_RAYS²`
+                                // free rays, not the ancestor's: the bar is at least theirs.
+                                // Taking the fraction 1 when they all come out free (and
+                                // tracing otherwise) is biased high by `v^n (1 - v)` for a leaf
+                                // whose true fraction is `v` (at most 0.08 for n = 4), inside
+                                // that bar (0.15 relative for 4 free rays); with the
+                                // ancestor's bar alone, 21 leaves of the room with a sphere
+                                // summed their factors over 1 beyond 3 bars.
+                                (
+                                    v,
+                                    bar.max(relative(1.0, (CHECK_RAYS * CHECK_RAYS) as f64)),
+                                    false,
+                                )
+                            } else {
+                                trace(cost)
+                            }
+                        }
+                    };
+                    (v > 0.0).then_some(Entry {
+                        src,
+                        f: f * v,
+                        v,
+                        v_bar,
+                        // The quadrature's own estimate: the integral stops at the looser of
+                        // the relative tolerance and `t`.
+                        q_bar: q_err * v,
+                        traced,
+                        open: f,
+                    })
+                };
+                // A partly buried leaf traces every entry: its rays from points inside the solid
+                // are blocked, so its traced factors are per whole area, and are divided by its
+                // exposed fraction below (a factor is per visible area).
+                let exposed = e.exposed[li];
+                let partly = exposed < 1.0;
+                let mut stack: Vec<Entry> = if partly {
+                    links[li]
+                        .iter()
+                        .filter_map(|k| piece(k.src, Sight::Trace, &mut cost))
+                        .collect()
+                } else {
+                    // The leaf's own links as they are where they were proved unoccluded; traced
+                    // again where rays decided them (whether a link was partly visible, and so
+                    // refined further, hung on those rays: kept, their estimate would be biased
+                    // low for partly visible links and high for those all of whose rays were
+                    // free).
+                    links[li]
+                        .iter()
+                        .filter_map(|k| {
+                            if k.proved {
+                                Some(Entry {
+                                    src: k.src,
+                                    f: k.f,
+                                    v: k.vis,
+                                    v_bar: 0.0,
+                                    q_bar: k.err,
+                                    traced: false,
+                                    open: k.open,
+                                })
+                            } else {
+                                piece(k.src, Sight::Again, &mut cost)
+                            }
+                        })
+                        .collect()
+                };
+                let mut a = e.parent[li];
+                while a != element::NONE {
+                    for k in &links[a as usize] {
+                        // A partly visible link says nothing of where in `a` its shadow falls:
+                        // the leaf's own visible fraction is traced (streams keyed on the leaf
+                        // and the source, as for a link). Nor does a link that rays found
+                        // visible from `a` prove that the leaf sees all of `s` (a leaf beside a
+                        // box sees less of the wall behind it than its parent): unless the
+                        // blockers' proof holds for the ancestor's link (then for every piece of
+                        // the pair) or for the leaf itself, it checks its own.
+                        let bar = if k.f > 0.0 { k.se / k.f } else { 0.0 };
+                        let v = if k.partial || partly {
+                            Sight::Trace
+                        } else if k.proved
+                            || ctx.blockers.unoccluded_within(
+                                e.corners(l),
+                                e.root[li],
+                                e.corners(k.src),
+                                e.root[k.src as usize],
+                                link::PROOF_BUDGET,
+                            ) == Some(true)
+                        {
+                            Sight::Given(k.vis, bar)
+                        } else {
+                            Sight::Check(k.vis, bar)
+                        };
+                        if let Some(en) = piece(k.src, v, &mut cost) {
+                            stack.push(en);
+                        }
                     }
+                    a = e.parent[a as usize];
                 }
-                a = e.parent[a as usize];
-            }
-            // Sources as fine as they are, where their radiosity varies.
-            while let Some(en) = stack.pop() {
-                let s = en.src;
-                if e.is_leaf(s) || weight(s, spread) * en.open <= descend * eps {
-                    let f = en.f / exposed;
-                    out.push((s, f, en.q_bar / exposed, f * en.v_bar));
-                    continue;
-                }
-                for c in e.children(s) {
-                    if ctx.visible[c as usize] <= 0.0 {
+                // Sources as fine as they are, where their radiosity varies.
+                while let Some(en) = stack.pop() {
+                    let s = en.src;
+                    if e.is_leaf(s) || weight(s, spread) * en.open <= descend * eps {
+                        let f = en.f / exposed;
+                        out.push((s, f, en.q_bar / exposed, f * en.v_bar));
                         continue;
                     }
-                    let v = if en.traced {
-                        Sight::TraceWith(PIECE_RAYS)
-                    } else {
-                        Sight::Given(en.v, en.v_bar)
-                    };
-                    if let Some(child) = piece(c, v, &mut cost) {
-                        stack.push(child);
+                    for c in e.children(s) {
+                        if ctx.visible[c as usize] <= 0.0 {
+                            continue;
+                        }
+                        let v = if en.traced {
+                            Sight::TraceWith(PIECE_RAYS)
+                        } else {
+                            Sight::Given(en.v, en.v_bar)
+                        };
+                        if let Some(child) = piece(c, v, &mut cost) {
+                            stack.push(child);
+                        }
                     }
                 }
-            }
-            if let Some(x) = extra {
-                x.entries(e, l, cluster);
-            }
-            let (list, sum, carried) = finish_list(e, li, &out, cluster, rho, state);
-            (list, sum, carried, cost)
-        })
+                if let Some(x) = extra {
+                    x.entries(e, l, cluster, points);
+                }
+                let (list, sum, carried) = finish_list(e, li, &out, cluster, rho, state);
+                (list, sum, carried, cost)
+            },
+        )
         .collect();
     let mut g = Gather {
         leaves,
