@@ -1299,13 +1299,13 @@ fn chain(t: &Tree, r: u32) -> impl Iterator<Item = u32> + '_ {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use crate::formfactor::exact::Piece as Shape2;
 
-    fn grid(n: usize) -> Elements {
-        // An n x n grid of unit squares in z = 0 facing +z, and the same tilted up by 90°
-        // along x = 0 facing +x: two groups of roots.
+    /// An `n × n` floor of unit squares (z = 0, facing +z) and an `n × n` wall (x = 0,
+    /// facing +x).
+    pub(in crate::hierarchy) fn grid(n: usize) -> Elements {
         let mut e = Elements::default();
         for i in 0..n {
             for j in 0..n {

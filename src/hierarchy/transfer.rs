@@ -226,35 +226,10 @@ impl Transfer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::formfactor::exact::Piece;
 
-    /// A 5 x 5 floor of unit squares (z = 0, facing +z) and a 5 x 5 wall (x = 0, facing +x).
+    /// A 5 x 5 floor of unit squares and a 5 x 5 wall facing +x.
     fn corner() -> Elements {
-        let mut e = Elements::default();
-        for i in 0..5 {
-            for j in 0..5 {
-                let (x, y) = (i as f64, j as f64);
-                e.add_root(
-                    Piece::Quad([
-                        DVec3::new(x, y, 0.0),
-                        DVec3::new(x + 1.0, y, 0.0),
-                        DVec3::new(x + 1.0, y + 1.0, 0.0),
-                        DVec3::new(x, y + 1.0, 0.0),
-                    ]),
-                    DVec3::Z,
-                );
-                e.add_root(
-                    Piece::Quad([
-                        DVec3::new(0.0, y, x),
-                        DVec3::new(0.0, y + 1.0, x),
-                        DVec3::new(0.0, y + 1.0, x + 1.0),
-                        DVec3::new(0.0, y, x + 1.0),
-                    ]),
-                    DVec3::X,
-                );
-            }
-        }
-        e
+        super::super::clusters::tests::grid(5)
     }
 
     /// Per root: what the landed vectors bring it (summed over the nodes above it), and
