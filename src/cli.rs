@@ -1211,9 +1211,13 @@ fn dispatch(cli: &Cli, matches: &clap::ArgMatches, cluster: &dyn Cluster) -> Res
                 println!("{name:width$}  {what}");
             }
             println!(
-                "(generated: room-spheres-N for any N in 1..={}, {} triangles per sphere)",
+                "(generated: room-spheres-N for any N in 1..={}, {} triangles per sphere; \
+                 room-spheres-N-sL with L in 0..={} subdivisions, 20·4^L triangles per \
+                 sphere, at most {} triangles)",
                 generated::MAX_SPHERES,
-                generated::SPHERE_TRIANGLES
+                generated::SPHERE_TRIANGLES,
+                generated::MAX_SUBDIVISIONS,
+                generated::MAX_TRIANGLES
             );
             Ok(())
         }

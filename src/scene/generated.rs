@@ -1,8 +1,12 @@
 //! Generated scenes of many small faces, for the hierarchical solver's clustering and its
 //! scaling measurements: `room-spheres-N`, a 5 x 3 x 4 m room lit by a 1 x 1 m ceiling
 //! light with `N` grey spheres of 1280 triangles each (icospheres, three subdivisions of
-//! the icosahedron) floating on a regular grid below the light. The scene depends only on
-//! `N`: the same name gives the same triangles, bit for bit.
+//! the icosahedron) floating on a regular grid below the light; `room-spheres-N-sL` the
+//! same room and spheres with `L` subdivisions (`20·4^L` triangles a sphere). The two
+//! families grow a scene in the two ways models grow: more objects (more of the light's
+//! interactions), or the same objects more finely tessellated (the same light, more
+//! faces: a scanned or subdivided model). The scene depends only on its name: the same
+//! name gives the same triangles, bit for bit.
 //!
 //! The room matches `scenes/room-sphere.obj` (floor at y = 0, up +y, white walls of
 //! reflectance 0.7, the wall at x = 0 pale blue, the light 1 cm below the ceiling,
@@ -16,34 +20,63 @@ use glam::DVec3;
 use super::{obj, Scene};
 use crate::error::Result;
 
-/// Triangles per sphere.
+/// Triangles per sphere of `room-spheres-N` (three subdivisions).
 pub const SPHERE_TRIANGLES: usize = 1280;
+
+/// Subdivisions of a sphere of `room-spheres-N`.
+pub const SUBDIVISIONS: usize = 3;
 
 /// Most spheres a name may ask for.
 pub const MAX_SPHERES: usize = 4000;
 
+/// Most subdivisions a name may ask for (`20·4^7` = 327,680 triangles a sphere).
+pub const MAX_SUBDIVISIONS: usize = 7;
+
+/// Most triangles a generated scene may have.
+pub const MAX_TRIANGLES: usize = MAX_SPHERES * SPHERE_TRIANGLES;
+
 /// The generated scenes listed by `radiosity scenes`: about 10^4, 3·10^4, 10^5, 3·10^5
 /// and 10^6 triangles.
+/// The second family: 12 spheres at 3 to 6 subdivisions, about 1.5·10^4 to 10^6
+/// triangles.
 pub const LISTED: &[&str] = &[
     "room-spheres-8",
     "room-spheres-24",
     "room-spheres-80",
     "room-spheres-240",
     "room-spheres-800",
+    "room-spheres-12-s3",
+    "room-spheres-12-s4",
+    "room-spheres-12-s5",
+    "room-spheres-12-s6",
 ];
 
-/// The number of spheres a generated scene's name asks for, if it names one.
-pub fn spheres(name: &str) -> Option<usize> {
-    let n: usize = name.strip_prefix("room-spheres-")?.parse().ok()?;
-    (1..=MAX_SPHERES).contains(&n).then_some(n)
+/// Triangles of an icosphere of `l` subdivisions.
+pub fn sphere_triangles(l: usize) -> usize {
+    20 << (2 * l)
+}
+
+/// The number of spheres and their subdivisions a generated scene's name asks for, if it
+/// names one: `room-spheres-N` (three subdivisions) or `room-spheres-N-sL`.
+pub fn spheres(name: &str) -> Option<(usize, usize)> {
+    let rest = name.strip_prefix("room-spheres-")?;
+    let (n, l) = match rest.split_once("-s") {
+        Some((n, l)) => (n.parse().ok()?, l.parse().ok()?),
+        None => (rest.parse().ok()?, SUBDIVISIONS),
+    };
+    ((1..=MAX_SPHERES).contains(&n)
+        && l <= MAX_SUBDIVISIONS
+        && n * sphere_triangles(l) <= MAX_TRIANGLES)
+        .then_some((n, l))
 }
 
 /// One line on a generated scene (`radiosity scenes`).
 pub fn describe(name: &str) -> Option<String> {
-    let n = spheres(name)?;
+    let (n, l) = spheres(name)?;
     Some(format!(
-        "room, ceiling light, {n} spheres: {} triangles, 7 quads",
-        n * SPHERE_TRIANGLES
+        "room, ceiling light, {n} spheres of {} triangles: {} triangles, 7 quads",
+        sphere_triangles(l),
+        n * sphere_triangles(l)
     ))
 }
 
@@ -158,12 +191,12 @@ pub fn placement(n: usize) -> (Vec<DVec3>, f64) {
     (centres, radius)
 }
 
-/// The OBJ text of `room-spheres-n`.
-pub fn obj_text(n: usize) -> String {
+/// The OBJ text of `n` spheres of `l` subdivisions in the room.
+pub fn obj_text(n: usize, l: usize) -> String {
     let mut o = String::new();
     let _ = writeln!(
         o,
-        "# room-spheres-{n}: generated (radiosity::scene::generated)\nmtllib generated.mtl"
+        "# room-spheres-{n}-s{l}: generated (radiosity::scene::generated)\nmtllib generated.mtl"
     );
     let quads: [(&str, &str, [[f64; 3]; 4]); 7] = [
         (
@@ -216,7 +249,7 @@ pub fn obj_text(n: usize) -> String {
         let _ = writeln!(o, "f {} {} {} {}", base, base + 1, base + 2, base + 3);
         base += 4;
     }
-    let (v, f) = icosphere(3);
+    let (v, f) = icosphere(l);
     let (centres, radius) = placement(n);
     for (k, c) in centres.iter().enumerate() {
         let _ = writeln!(o, "o sphere_{k}\nusemtl grey");
@@ -234,11 +267,11 @@ pub fn obj_text(n: usize) -> String {
 
 /// The generated scene `name`, or `None` when the name is not one.
 pub fn load(name: &str) -> Result<Option<Scene>> {
-    let Some(n) = spheres(name) else {
+    let Some((n, l)) = spheres(name) else {
         return Ok(None);
     };
     let label = PathBuf::from(format!("{name}.obj"));
-    let mut scene = obj::parse(name, &label, &obj_text(n), &|_lib: &str| {
+    let mut scene = obj::parse(name, &label, &obj_text(n, l), &|_lib: &str| {
         Ok((Path::new("generated.mtl").to_path_buf(), MTL.to_string()))
     })?;
     scene.source = format!("generated:{name}");
@@ -251,8 +284,9 @@ mod tests {
 
     #[test]
     fn icosphere_is_closed_outward_and_round() {
-        let (v, f) = icosphere(3);
+        let (v, f) = icosphere(SUBDIVISIONS);
         assert_eq!(f.len(), SPHERE_TRIANGLES);
+        assert_eq!(sphere_triangles(SUBDIVISIONS), SPHERE_TRIANGLES);
         assert_eq!(v.len(), 642);
         // Every edge shared by exactly two triangles, in opposite directions.
         let mut edges = std::collections::HashMap::new();
@@ -293,9 +327,19 @@ mod tests {
 
     #[test]
     fn names_give_the_same_scene() {
-        assert_eq!(spheres("room-spheres-8"), Some(8));
+        assert_eq!(spheres("room-spheres-8"), Some((8, 3)));
+        assert_eq!(spheres("room-spheres-12-s6"), Some((12, 6)));
+        assert_eq!(spheres("room-spheres-2-s0"), Some((2, 0)));
         assert_eq!(spheres("room-spheres-0"), None);
         assert_eq!(spheres("room-spheres-x"), None);
+        assert_eq!(spheres("room-spheres-8-s8"), None);
+        assert_eq!(spheres("room-spheres-4000-s4"), None);
+        assert_eq!(spheres("room-spheres-8-sx"), None);
+        for name in LISTED {
+            assert!(describe(name).is_some(), "{name}");
+        }
+        let c = load("room-spheres-1-s1").unwrap().unwrap();
+        assert_eq!(c.faces.len(), 7 + 80);
         let a = load("room-spheres-2").unwrap().unwrap();
         let b = load("room-spheres-2").unwrap().unwrap();
         assert_eq!(a.faces.len(), 7 + 2 * SPHERE_TRIANGLES);
