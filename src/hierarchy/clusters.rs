@@ -332,25 +332,26 @@ pub struct ClusterLink {
 pub struct Links {
     /// Links into each cluster.
     pub cluster: Vec<Vec<ClusterLink>>,
-    /// Links (from clusters) into each root.
-    pub root: Vec<Vec<ClusterLink>>,
+    /// Links (from clusters) into each element: a root, or an element below one (a large
+    /// root split so that a cluster's light is resolved over it).
+    pub element: Vec<Vec<ClusterLink>>,
 }
 
 impl Links {
-    /// Empty lists for `t` over `roots` roots.
-    pub fn new(t: &Tree, roots: usize) -> Links {
+    /// Empty lists for `t` over `elements` elements.
+    pub fn new(t: &Tree, elements: usize) -> Links {
         Links {
             cluster: vec![Vec::new(); t.len()],
-            root: vec![Vec::new(); roots],
+            element: vec![Vec::new(); elements],
         }
     }
 
-    /// The links into node `n`.
+    /// The links into node `n` (none for an element made after the lists).
     pub fn into_node(&self, n: u32) -> &[ClusterLink] {
         if is_cluster(n) {
             &self.cluster[(n & !CLUSTER) as usize]
         } else {
-            &self.root[n as usize]
+            self.element.get(n as usize).map_or(&[], Vec::as_slice)
         }
     }
 
@@ -358,13 +359,17 @@ impl Links {
         if is_cluster(n) {
             &mut self.cluster[(n & !CLUSTER) as usize]
         } else {
-            &mut self.root[n as usize]
+            let k = n as usize;
+            if k >= self.element.len() {
+                self.element.resize(k + 1, Vec::new());
+            }
+            &mut self.element[k]
         }
     }
 
     /// Number of links.
     pub fn len(&self) -> usize {
-        self.cluster.iter().chain(&self.root).map(Vec::len).sum()
+        self.cluster.iter().chain(&self.element).map(Vec::len).sum()
     }
 
     /// True when there are none.
@@ -466,6 +471,12 @@ pub struct Refiner<'a> {
     /// Per cluster, `Σ_j A_j n_j` over its roots (today's visible areas), made on first
     /// use ([`Refiner::projected`]).
     pub moments: std::sync::OnceLock<Vec<DVec3>>,
+    /// Smallest area an element split for a cluster link's receiver may have (a quarter
+    /// of its parent's at least this).
+    pub min_area: f64,
+    /// Per root its visible area times its luminance `A_j L(B_j)`, and per cluster the sum
+    /// of `A_j L(B_j) n_j` over its roots, made on first use ([`Refiner::exitance`]).
+    pub bright: std::sync::OnceLock<(Vec<f64>, Vec<DVec3>)>,
 }
 
 /// What a pair of nodes becomes.
@@ -474,6 +485,9 @@ enum Outcome {
     Link(ClusterLink),
     Elements(u32, u32),
     Split(Vec<(u32, u32)>),
+    /// The receiver, an element not split yet, is to be split, and its children paired
+    /// with the source.
+    Subdivide(u32, u32),
     Drop,
 }
 
@@ -503,7 +517,7 @@ impl Refiner<'_> {
                 centre,
                 radius,
                 area: self.visible[k],
-                rho: self.rho_max[k],
+                rho: self.rho_max[e.root[k] as usize],
                 cone: (e.normal[k], 1.0),
             }
         }
@@ -526,17 +540,36 @@ impl Refiner<'_> {
         (b, s.iter().copied().fold(0.0, f64::max))
     }
 
-    /// The pairs that replace `r ← s`: the larger node's children (by sphere radius; the
-    /// other's when the larger is a root).
-    fn split(&self, r: u32, s: u32, rs: &Shape, ss: &Shape) -> Vec<(u32, u32)> {
+    /// What replaces `r ← s`: the pairs of the larger node's children (by sphere radius).
+    /// A receiving element larger than its source cluster is split into its four element
+    /// children ([`Outcome::Subdivide`] when it has none yet), down to [`Refiner::min_area`]:
+    /// else a floor under a group of spheres would be linked to every face of the group
+    /// (the source split down to its roots, as the larger node), and each of its leaves
+    /// would gather from all of them. A source root and a cluster receiver: the receiver.
+    fn split(&self, r: u32, s: u32, rs: &Shape, ss: &Shape) -> Outcome {
         let t = self.tree;
-        let split_r = is_cluster(r) && (rs.radius >= ss.radius || !is_cluster(s));
-        if split_r {
+        if is_cluster(r) && (rs.radius >= ss.radius || !is_cluster(s)) {
             let kids = t.children[(r & !CLUSTER) as usize];
-            kids.iter().map(|&c| (c, s)).collect()
+            return Outcome::Split(kids.iter().map(|&c| (c, s)).collect());
+        }
+        let e = self.elements;
+        let k = r as usize;
+        if !is_cluster(r) && rs.radius > ss.radius && e.area[k] / 4.0 >= self.min_area {
+            if e.is_leaf(r) {
+                return Outcome::Subdivide(r, s);
+            }
+            return Outcome::Split(e.children(r).iter().map(|&c| (c, s)).collect());
+        }
+        let kids = t.children[(s & !CLUSTER) as usize];
+        Outcome::Split(kids.iter().map(|&c| (r, c)).collect())
+    }
+
+    /// The faces of node `n`: a cluster's roots, or the element itself.
+    fn faces<'b>(&'b self, n: &'b u32) -> &'b [u32] {
+        if is_cluster(*n) {
+            self.tree.roots_of(*n)
         } else {
-            let kids = t.children[(s & !CLUSTER) as usize];
-            kids.iter().map(|&c| (r, c)).collect()
+            std::slice::from_ref(n)
         }
     }
 
@@ -580,7 +613,7 @@ impl Refiner<'_> {
         let d = gap.length();
         let sum = rs.radius + ss.radius;
         if d <= sum * (1.0 + 1e-9) {
-            return (Outcome::Split(self.split(r, s, &rs, &ss)), 0);
+            return (self.split(r, s, &rs, &ss), 0);
         }
         let w = gap / d;
         let alpha = (sum / d).min(1.0).asin();
@@ -595,7 +628,7 @@ impl Refiner<'_> {
         let (b, ds) = self.brightness(s);
         let err = |rel: f64| rs.rho * (b * f_up * rel.min(1.0) + ds * f_up);
         if err(geo) > self.eps {
-            return (Outcome::Split(self.split(r, s, &rs, &ss)), 0);
+            return (self.split(r, s, &rs, &ss), 0);
         }
         let seen = self.transmittance(r, s);
         let n = (self.rays * self.rays) as f64;
@@ -603,7 +636,7 @@ impl Refiner<'_> {
             if rs.rho * b * f_up * 3.0 / n <= self.hide * self.eps {
                 return (Outcome::Drop, seen.rays);
             }
-            return (Outcome::Split(self.split(r, s, &rs, &ss)), seen.rays);
+            return (self.split(r, s, &rs, &ss), seen.rays);
         }
         let dv = if seen.free > 0 && seen.blocked > 0 || seen.free == 0 {
             1.0
@@ -611,7 +644,7 @@ impl Refiner<'_> {
             fraction_se(1.0, n)
         };
         if err(geo + dv) > self.eps || geo + dv > self.accuracy {
-            return (Outcome::Split(self.split(r, s, &rs, &ss)), seen.rays);
+            return (self.split(r, s, &rs, &ss), seen.rays);
         }
         let p = self.projected(s, w);
         if p <= 0.0 && (self.points == 0 || !self.facing(r, s)) {
@@ -651,7 +684,7 @@ impl Refiner<'_> {
         let e = self.elements;
         let (lo, hi) = self.bounds(b);
         let (c, h) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-        self.tree.roots_of(a).iter().any(|&m| {
+        self.faces(&a).iter().any(|&m| {
             let (n, q) = (e.normal[m as usize], e.centre[m as usize]);
             let reach = n.dot(c - q) + n.abs().dot(h);
             reach > 1e-9 * ((c - q).length() + h.length())
@@ -664,7 +697,7 @@ impl Refiner<'_> {
     /// (at most [`FACING_PAIRS`] root pairs), else by the roots' planes against the other
     /// node's bounding box ([`Refiner::front`], a superset).
     pub fn facing(&self, r: u32, s: u32) -> bool {
-        let (rr, sr) = (self.tree.roots_of(r), self.tree.roots_of(s));
+        let (rr, sr) = (self.faces(&r), self.faces(&s));
         if rr.len() * sr.len() > FACING_PAIRS {
             return self.front(s, r) && self.front(r, s);
         }
@@ -692,6 +725,36 @@ impl Refiner<'_> {
         projected(self.tree, self.elements, self.visible, moments, s, w)
     }
 
+    /// The brightness-weighted projected area of node `s` toward `w`: `X_S(w) / L(B_S)`
+    /// with `X_S(w) = Σ_j A_j L(B_j) max(0, n_j·w)` the luminance its faces send toward
+    /// `w` (times π) and `B_S` its mean radiosity; [`Refiner::projected`] when `s` is
+    /// dark. Where a cluster's radiosity varies with orientation (the tops of spheres
+    /// under a light are brighter than their bottoms, and the ceiling sees the tops),
+    /// `B_S P_S(w)` misses the exitance toward `w` with one sign for each receiver
+    /// (measured: the ceiling of `room-spheres-2` 0.7% dark against the unclustered bake);
+    /// `B_S` times this area is `X_S(w)` in luminance. The shape `L(B_j) / L(B_S)` is
+    /// taken from the radiosity of the refinement (one pass behind the final solve, whose
+    /// leaf radiosity it matches to 1-5%); the level `B_S` from the solve.
+    pub fn exitance(&self, s: u32, w: DVec3) -> f64 {
+        let mean = crate::scene::luminance(self.source(s).0);
+        if !is_cluster(s) || mean <= 0.0 {
+            return self.projected(s, w);
+        }
+        let (area, m) = self.bright.get_or_init(|| {
+            let area = self.bright_areas();
+            let m = moments(self.tree, self.elements, &area);
+            (area, m)
+        });
+        projected(self.tree, self.elements, area, m, s, w) / mean
+    }
+
+    /// Per root, its visible area times its luminance ([`Refiner::exitance`]).
+    fn bright_areas(&self) -> Vec<f64> {
+        (0..self.elements.roots)
+            .map(|k| self.visible[k] * crate::scene::luminance(self.b[k]))
+            .collect()
+    }
+
     /// A point of node `n` drawn by visible area: the point, its normal, its area weight
     /// (Jacobian over the root's area) and the exposed fraction of the leaf it lies on
     /// (below 1 on a partly buried leaf: [`Elements::exposed`]). A root is drawn by its
@@ -700,13 +763,22 @@ impl Refiner<'_> {
     fn sample(&self, n: u32, rng: &mut Pcg32) -> Option<(DVec3, DVec3, f64, f64)> {
         let t = self.tree;
         let e = self.elements;
-        let (roots, lo, a, b) = t.area_span(n);
-        if b <= a {
-            return None;
-        }
-        let x = a + rng.next_f64() * (b - a);
-        let k = t.cum[lo + 1..lo + roots.len()].partition_point(|&c| c <= x);
-        let m = roots[k.min(roots.len() - 1)];
+        let m = if !is_cluster(n) && n as usize >= e.roots {
+            // An element below a root: drawn by area over it, as a root is.
+            if self.visible[n as usize] <= 0.0 {
+                return None;
+            }
+            rng.next_f64();
+            n
+        } else {
+            let (roots, lo, a, b) = t.area_span(n);
+            if b <= a {
+                return None;
+            }
+            let x = a + rng.next_f64() * (b - a);
+            let k = t.cum[lo + 1..lo + roots.len()].partition_point(|&c| c <= x);
+            roots[k.min(roots.len() - 1)]
+        };
         for _ in 0..super::link::BURIED_TRIES {
             let (u, v) = (rng.next_f64(), rng.next_f64());
             let leaf = e.locate(m, u, v).0 as usize;
@@ -793,8 +865,11 @@ struct Seen {
 /// What a round of cluster refinement produced.
 #[derive(Clone, Debug, Default)]
 pub struct Made {
-    /// Pairs of roots, for element links.
+    /// Pairs of elements, for element links.
     pub specs: Vec<(u32, u32)>,
+    /// Receiving elements to split, each with the source cluster its children are then
+    /// paired with ([`split_receivers`]).
+    pub subdivide: Vec<(u32, u32)>,
     /// Cluster links made.
     pub links: usize,
     /// Pairs examined.
@@ -804,8 +879,8 @@ pub struct Made {
 }
 
 /// Refines the pairs `start` until every pair is a cluster link (added to `links`), a pair
-/// of roots (returned, for element links), or dropped; a level of pairs at a time, in
-/// parallel, in a fixed order.
+/// of elements (returned, for element links), a receiving element to split (returned), or
+/// dropped; a level of pairs at a time, in parallel, in a fixed order.
 pub fn refine(f: &Refiner, start: Vec<(u32, u32)>, links: &mut Links) -> Made {
     let mut made = Made::default();
     let mut frontier = start;
@@ -822,6 +897,7 @@ pub fn refine(f: &Refiner, start: Vec<(u32, u32)>, links: &mut Links) -> Made {
                 }
                 Outcome::Elements(a, b) => made.specs.push((a, b)),
                 Outcome::Split(p) => next.extend(p),
+                Outcome::Subdivide(r, s) => made.subdivide.push((r, s)),
                 Outcome::Drop => {}
             }
         }
@@ -835,11 +911,12 @@ pub fn refine(f: &Refiner, start: Vec<(u32, u32)>, links: &mut Links) -> Made {
 /// and the number of links replaced.
 pub fn recheck(f: &Refiner, links: &mut Links) -> (Made, usize) {
     let mut start = Vec::new();
+    let mut subdivide = Vec::new();
     let mut replaced = 0;
     let t = f.tree;
     let nodes: Vec<u32> = (0..t.len() as u32)
         .map(|c| c | CLUSTER)
-        .chain(0..links.root.len() as u32)
+        .chain(0..links.element.len() as u32)
         .collect();
     for &r in &nodes {
         let list = links.list_mut(r);
@@ -847,7 +924,11 @@ pub fn recheck(f: &Refiner, links: &mut Links) -> (Made, usize) {
         for l in list.drain(..) {
             if f.error(&l) > f.eps {
                 let (rs, ss) = (f.shape(r), f.shape(l.src));
-                start.extend(f.split(r, l.src, &rs, &ss));
+                match f.split(r, l.src, &rs, &ss) {
+                    Outcome::Split(p) => start.extend(p),
+                    Outcome::Subdivide(a, b) => subdivide.push((a, b)),
+                    _ => unreachable!("a split is pairs or a receiver to split"),
+                }
                 replaced += 1;
             } else {
                 kept.push(l);
@@ -855,7 +936,19 @@ pub fn recheck(f: &Refiner, links: &mut Links) -> (Made, usize) {
         }
         *links.list_mut(r) = kept;
     }
-    (refine(f, start, links), replaced)
+    let mut made = refine(f, start, links);
+    subdivide.append(&mut made.subdivide);
+    made.subdivide = subdivide;
+    (made, replaced)
+}
+
+/// The pairs that replace `made.subdivide` once its receivers are split: each receiver's
+/// four children with its source.
+pub fn split_receivers(e: &Elements, subdivide: &[(u32, u32)]) -> Vec<(u32, u32)> {
+    subdivide
+        .iter()
+        .flat_map(|&(r, s)| e.children(r).map(move |c| (c, s)))
+        .collect()
 }
 
 /// Points a piece of a link's source is sampled at for the near-field correction
@@ -878,7 +971,8 @@ pub struct Piece {
     pub node: u32,
     /// Its centre.
     pub at: DVec3,
-    /// Its projected area `P_n(w)` toward the receiver's centre.
+    /// Its brightness-weighted projected area toward the receiver's centre
+    /// ([`Refiner::exitance`]): `P_n(w)` where its radiosity is uniform.
     pub p: f64,
     /// The direction `w` from its centre to the receiver's. Its near-field points
     /// ([`sample_points`], keyed on the receiving node and this node) are drawn where
@@ -906,7 +1000,7 @@ pub struct Sample {
 #[derive(Clone, Debug, Default)]
 pub struct Pieces {
     cluster: Vec<Vec<Vec<Piece>>>,
-    root: Vec<Vec<Vec<Piece>>>,
+    element: Vec<Vec<Vec<Piece>>>,
 }
 
 impl Pieces {
@@ -914,7 +1008,7 @@ impl Pieces {
         if is_cluster(n) {
             &self.cluster[(n & !CLUSTER) as usize]
         } else {
-            &self.root[n as usize]
+            self.element.get(n as usize).map_or(&[], Vec::as_slice)
         }
     }
 }
@@ -952,7 +1046,7 @@ impl Refiner<'_> {
                 out.push(Piece {
                     node: n,
                     at: c,
-                    p,
+                    p: if p > 0.0 { self.exitance(n, w) } else { 0.0 },
                     w,
                 });
             }
@@ -978,7 +1072,7 @@ impl Refiner<'_> {
         };
         Pieces {
             cluster: per(&links.cluster, true),
-            root: per(&links.root, false),
+            element: per(&links.element, false),
         }
     }
 }
@@ -1046,7 +1140,9 @@ pub fn projected(
 /// one point per `1/k` of its area. Triangles are mapped by `u = √ξ` (uniform by
 /// area); the weights carry the remaining Jacobian, and the ratio of each root's visible
 /// area today (`visible`) to the one the tree was built with, so that the weights'
-/// expectation is today's visible area and that of `facing` today's `P_n(w)`.
+/// expectation is today's visible area and that of `facing` today's `P_n(w)`. With
+/// `bright` (per root `L(B_j) / L(B_n)`, [`Refiner::exitance`]) both are weighted by it,
+/// so that `facing`'s expectation is the piece's brightness-weighted projected area.
 #[allow(clippy::too_many_arguments)]
 pub fn sample_points(
     t: &Tree,
@@ -1057,6 +1153,7 @@ pub fn sample_points(
     r: u32,
     n: u32,
     w: DVec3,
+    bright: &dyn Fn(u32) -> f64,
 ) -> Vec<Sample> {
     if k == 0 {
         return Vec::new();
@@ -1096,7 +1193,7 @@ pub fn sample_points(
             crate::formfactor::exact::Piece::Quad(_) => e.piece[mi].at(xi, 1.0 - xi, v, 1.0 - v),
         };
         let today = if vis > 0.0 { visible[mi] / vis } else { 0.0 };
-        let weight = (b - a) * inv * wj / e.area[mi].max(1e-300) * today;
+        let weight = (b - a) * inv * wj / e.area[mi].max(1e-300) * today * bright(m);
         out.push(Sample {
             at: p,
             root: m,
@@ -1200,6 +1297,10 @@ pub struct Expansion<'a> {
     pub seed: u64,
     /// Points per piece ([`POINTS`]).
     pub points: usize,
+    /// Per root, its luminance when the pieces were cut ([`Refiner::exitance`]).
+    pub root_luminance: Vec<f64>,
+    /// Per cluster, its mean luminance then.
+    pub cluster_luminance: Vec<f64>,
 }
 
 impl Expansion<'_> {
@@ -1220,11 +1321,23 @@ impl Expansion<'_> {
         if e.buried[l as usize] || self.links.is_empty() {
             return;
         }
-        for node in chain(self.tree, e.root[l as usize]) {
+        for node in chain(self.tree, e, l) {
             let points = cache.of(node, || {
                 let mut all = Vec::new();
                 for ps in self.pieces.of(node) {
                     for p in ps {
+                        let mean = if is_cluster(p.node) {
+                            self.cluster_luminance[(p.node & !CLUSTER) as usize]
+                        } else {
+                            0.0
+                        };
+                        let bright = |m: u32| {
+                            if mean > 0.0 {
+                                self.root_luminance[m as usize] / mean
+                            } else {
+                                1.0
+                            }
+                        };
                         all.push(sample_points(
                             self.tree,
                             e,
@@ -1234,6 +1347,7 @@ impl Expansion<'_> {
                             node,
                             p.node,
                             p.w,
+                            &bright,
                         ));
                     }
                 }
@@ -1253,10 +1367,10 @@ impl Expansion<'_> {
         }
     }
 
-    /// Entries [`Expansion::entries`] gives at most for every element of root `r`: the
-    /// pieces of the cluster links on its chain.
-    pub fn pieces_on_chain(&self, r: u32) -> usize {
-        chain(self.tree, r)
+    /// Entries [`Expansion::entries`] gives at most for element `l`: the pieces of the
+    /// cluster links on its chain.
+    pub fn pieces_on_chain(&self, e: &Elements, l: u32) -> usize {
+        chain(self.tree, e, l)
             .map(|node| self.pieces.of(node).iter().map(Vec::len).sum::<usize>())
             .sum()
     }
@@ -1286,10 +1400,16 @@ impl PointCache {
     }
 }
 
-/// Root `r` and the clusters above it, as nodes, from `r` up.
-fn chain(t: &Tree, r: u32) -> impl Iterator<Item = u32> + '_ {
+/// Element `l`, the elements above it up to its root, and the clusters above the root,
+/// as nodes, from `l` up.
+fn chain<'a>(t: &'a Tree, e: &'a Elements, l: u32) -> impl Iterator<Item = u32> + 'a {
+    let r = e.root[l as usize];
+    let elements = std::iter::successors(Some(l), move |&k| {
+        let p = e.parent[k as usize];
+        (k != r && p != NONE).then_some(p)
+    });
     let first = t.root_parent.get(r as usize).copied().unwrap_or(NONE);
-    std::iter::once(r).chain(
+    elements.chain(
         std::iter::successors((first != NONE).then_some(first), move |&c| {
             let p = t.parent[c as usize];
             (p != NONE).then_some(p)
@@ -1448,7 +1568,7 @@ pub(super) mod tests {
             let runs = 400;
             let (mut sum, mut sq_err, mut se2) = (0.0, 0.0, 0.0);
             for r in 0..runs {
-                let samples = sample_points(&t, &e, &vis, 1, POINTS, r, 0, w);
+                let samples = sample_points(&t, &e, &vis, 1, POINTS, r, 0, w, &|_| 1.0);
                 let (f, se) = piece_factor(&piece, &samples, 1.0, &e, 1);
                 sum += f;
                 sq_err += (f - exact).powi(2);

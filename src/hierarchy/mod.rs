@@ -383,27 +383,33 @@ pub fn run(
         .collect();
     let tree = (s.clusters && e.roots >= 2).then(|| Tree::build(&e, &visible, &rho_max));
     let tree = tree.as_ref();
-    let mut clinks = tree.map_or_else(Links::default, |t| Links::new(t, e.roots));
+    let mut clinks = tree.map_or_else(Links::default, |t| Links::new(t, e.len()));
     state.pull_clusters(tree, &visible);
+    let mut links: Vec<Vec<Link>> = vec![Vec::new(); e.len()];
     let specs: Vec<(u32, u32)> = match tree {
         Some(t) => {
-            let f = refiner(
-                t,
-                &e,
-                &visible,
-                &rho_max,
+            let mut grow = Grow {
+                e: &mut e,
+                state: &mut state,
+                links: &mut links,
                 vis,
-                &state,
-                b_ref,
-                s.error * b_ref,
+                normals: &normals,
+                solids,
+                seed: s.seed,
+            };
+            let top = clusters::top(t);
+            let (specs, _) = refine_clusters(
+                t,
+                &mut grow,
+                &mut clinks,
+                &rho_max,
+                Some(vec![(top, top)]),
+                (b_ref, s.error * b_ref, min_area),
                 s,
+                &mut report,
             );
-            let made =
-                clusters::refine(&f, vec![(clusters::top(t), clusters::top(t))], &mut clinks);
-            report.rays += made.rays;
-            report.cluster_pairs += made.pairs;
             report.clusters = t.len();
-            made.specs
+            specs
         }
         None => {
             check_initial_pairs(e.roots, s.max_memory)?;
@@ -412,8 +418,9 @@ pub fn run(
                 .collect()
         }
     };
-    let mut links: Vec<Vec<Link>> = vec![Vec::new(); e.len()];
     {
+        // The cluster refinement may have split receivers.
+        let (rho, _) = materials(&e, &material);
         let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
         let tols = tolerances(&specs, &rho, &state.b, s.relative(b_ref).unknown(), s);
         let cost = evaluate_into(&ctx, &specs, &tols, &mut links);
@@ -439,20 +446,30 @@ pub fn run(
         // Cluster links that today's radiosity puts over the tolerance go down a level.
         let mut regrouped = 0;
         if let (Some(t), true) = (tree, pass_no > 0) {
-            let visible = e.visible_areas();
-            let (rho, _) = materials(&e, &material);
-            let rho_max: Vec<f64> = rho[..e.roots]
-                .iter()
-                .map(|r| r.iter().copied().fold(0.0, f64::max))
-                .collect();
-            let f = refiner(t, &e, &visible, &rho_max, vis, &state, 0.0, eps, s);
-            let (made, replaced) = clusters::recheck(&f, &mut clinks);
+            let mut grow = Grow {
+                e: &mut e,
+                state: &mut state,
+                links: &mut links,
+                vis,
+                normals: &normals,
+                solids,
+                seed: s.seed,
+            };
+            let (specs, replaced) = refine_clusters(
+                t,
+                &mut grow,
+                &mut clinks,
+                &rho_max,
+                None,
+                (0.0, eps, min_area),
+                s,
+                &mut report,
+            );
             regrouped = replaced;
-            report.rays += made.rays;
-            report.cluster_pairs += made.pairs;
+            let (rho, _) = materials(&e, &material);
             let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
-            let tols = tolerances(&made.specs, &rho, &state.b, rel, s);
-            let cost = evaluate_into(&ctx, &made.specs, &tols, &mut links);
+            let tols = tolerances(&specs, &rho, &state.b, rel, s);
+            let cost = evaluate_into(&ctx, &specs, &tols, &mut links);
             report.rays += cost.rays;
             report.evals += cost.evals;
         }
@@ -605,14 +622,17 @@ fn expansion<'a>(
     let t = tree?;
     let visible = e.visible_areas();
     let rho_max = vec![0.0; e.roots];
-    let f = refiner(t, e, &visible, &rho_max, vis, state, 0.0, eps, s);
+    let f = refiner(t, e, &visible, &rho_max, vis, state, (0.0, eps, 0.0), s);
     let pieces = f.all_pieces(clinks, s.descend);
+    let lum = crate::scene::luminance;
     Some(clusters::Expansion {
         tree: t,
         links: clinks,
         pieces,
         seed: f.seed,
         points: f.points,
+        root_luminance: state.b[..e.roots].iter().map(|&b| lum(b)).collect(),
+        cluster_luminance: state.clusters.b.iter().map(|&b| lum(b)).collect(),
         visible,
     })
 }
@@ -630,7 +650,7 @@ fn transfer(
     let t = tree?;
     let visible = e.visible_areas();
     let rho_max = vec![0.0; e.roots];
-    let mut f = refiner(t, e, &visible, &rho_max, vis, state, 0.0, eps, s);
+    let mut f = refiner(t, e, &visible, &rho_max, vis, state, (0.0, eps, 0.0), s);
     f.points = 0;
     Some(transfer::Transfer::build(&f, clinks, s.descend))
 }
@@ -644,8 +664,7 @@ fn refiner<'a>(
     rho_max: &'a [f64],
     vis: &'a Visibility,
     state: &'a State,
-    floor: f64,
-    eps: f64,
+    (floor, eps, min_area): (f64, f64, f64),
     s: &Settings,
 ) -> Refiner<'a> {
     Refiner {
@@ -665,7 +684,101 @@ fn refiner<'a>(
         accuracy: s.cluster_accuracy,
         points: clusters::POINTS,
         moments: std::sync::OnceLock::new(),
+        min_area,
+        bright: std::sync::OnceLock::new(),
     }
+}
+
+/// What splitting an element during refinement touches: the elements, the solution's
+/// per-element arrays and the element links' lists, and what burying new leaves needs.
+struct Grow<'a> {
+    e: &'a mut Elements,
+    state: &'a mut State,
+    links: &'a mut Vec<Vec<Link>>,
+    vis: &'a Visibility,
+    normals: &'a [glam::DVec3],
+    /// True when something can bury a leaf ([`refine::bury`]).
+    solids: bool,
+    seed: u64,
+}
+
+impl Grow<'_> {
+    /// Splits the leaves among `targets` (each once, in order), children starting from
+    /// their parent's radiosity; buries the new leaves that lie inside solids. Returns the
+    /// rays cast.
+    fn split(&mut self, targets: impl IntoIterator<Item = u32>) -> u64 {
+        let mut new_leaves = Vec::new();
+        for target in targets {
+            if !self.e.is_leaf(target) {
+                continue;
+            }
+            let kids = self.e.split(target);
+            for c in kids {
+                self.state.b.push(self.state.b[target as usize]);
+                self.state.spread.push([0.0; 3]);
+                self.state.h.push([0.0; 3]);
+                debug_assert_eq!(self.state.b.len() - 1, c as usize);
+            }
+            new_leaves.extend(kids);
+        }
+        let mut rays = 0;
+        if self.solids && !new_leaves.is_empty() {
+            rays = refine::bury(self.e, &new_leaves, self.vis, self.normals, self.seed).1;
+        }
+        self.links.resize(self.e.len(), Vec::new());
+        rays
+    }
+}
+
+/// Cluster refinement from the pairs `start`, or (with `None`) the re-examination of the
+/// cluster links with today's radiosity ([`clusters::recheck`]), splitting the receiving
+/// elements it asks for and refining their children's pairs, round after round, until
+/// none is asked for. `(floor, eps, min_area)` as in [`refiner`]. Returns the pairs of
+/// elements for element links and the number of cluster links replaced.
+#[allow(clippy::too_many_arguments)]
+fn refine_clusters(
+    t: &Tree,
+    grow: &mut Grow,
+    clinks: &mut Links,
+    rho_max: &[f64],
+    start: Option<Vec<(u32, u32)>>,
+    (floor, eps, min_area): (f64, f64, f64),
+    s: &Settings,
+    report: &mut Report,
+) -> (Vec<(u32, u32)>, usize) {
+    let mut specs = Vec::new();
+    let mut replaced = 0;
+    let mut frontier = start;
+    loop {
+        let visible = grow.e.visible_areas();
+        let f = refiner(
+            t,
+            grow.e,
+            &visible,
+            rho_max,
+            grow.vis,
+            grow.state,
+            (floor, eps, min_area),
+            s,
+        );
+        let mut made = match frontier.take() {
+            Some(pairs) => clusters::refine(&f, pairs, clinks),
+            None => {
+                let (made, r) = clusters::recheck(&f, clinks);
+                replaced = r;
+                made
+            }
+        };
+        report.rays += made.rays;
+        report.cluster_pairs += made.pairs;
+        specs.append(&mut made.specs);
+        if made.subdivide.is_empty() {
+            break;
+        }
+        report.rays += grow.split(made.subdivide.iter().map(|&(r, _)| r));
+        frontier = Some(clusters::split_receivers(grow.e, &made.subdivide));
+    }
+    (specs, replaced)
 }
 
 /// Reflectance and emission per element, from its root's material.
@@ -771,16 +884,10 @@ fn gather_entries(e: &Elements, links: &[Vec<Link>], extra: Option<&clusters::Ex
         };
         chain[k] = up + links[k].len() as u64;
     }
-    let pieces: Vec<u64> = match extra {
-        Some(x) => (0..e.roots as u32)
-            .into_par_iter()
-            .map(|r| x.pieces_on_chain(r) as u64)
-            .collect(),
-        None => vec![0; e.roots],
-    };
-    e.leaves()
-        .filter(|&l| !e.buried[l as usize])
-        .map(|l| chain[l as usize] + pieces[e.root[l as usize] as usize])
+    let leaves: Vec<u32> = e.leaves().filter(|&l| !e.buried[l as usize]).collect();
+    leaves
+        .par_iter()
+        .map(|&l| chain[l as usize] + extra.map_or(0, |x| x.pieces_on_chain(e, l) as u64))
         .sum()
 }
 
@@ -1377,29 +1484,23 @@ fn refine_links(
             break;
         }
         // Split, on this thread, in decision order.
-        let mut new_leaves = Vec::new();
-        for &(r, k, d) in &decisions {
-            let target = match d {
+        let targets: Vec<u32> = decisions
+            .iter()
+            .map(|&(r, k, d)| match d {
                 Decision::SplitReceiver => r,
                 _ => links[r as usize][k].src,
-            };
-            if e.is_leaf(target) {
-                let kids = e.split(target);
-                for c in kids {
-                    // Children start from the parent's radiosity.
-                    state.b.push(state.b[target as usize]);
-                    state.spread.push([0.0; 3]);
-                    state.h.push([0.0; 3]);
-                    debug_assert_eq!(state.b.len() - 1, c as usize);
-                }
-                new_leaves.extend(kids);
-            }
-        }
-        if !blockers.is_empty() {
-            let (_, bury_rays) = refine::bury(e, &new_leaves, vis, normals, s.seed);
-            report.rays += bury_rays;
-        }
-        links.resize(e.len(), Vec::new());
+            })
+            .collect();
+        let mut grow = Grow {
+            e: &mut *e,
+            state: &mut *state,
+            links: &mut *links,
+            vis,
+            normals,
+            solids: !blockers.is_empty(),
+            seed: s.seed,
+        };
+        report.rays += grow.split(targets);
         // The replacements, and the replaced links removed.
         let mut specs = Vec::with_capacity(4 * decisions.len());
         for &(r, k, d) in &decisions {

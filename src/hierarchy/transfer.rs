@@ -118,7 +118,7 @@ impl Transfer {
         let t = f.tree;
         let receivers: Vec<u32> = (0..t.len() as u32)
             .map(|c| c | CLUSTER)
-            .chain(0..links.root.len() as u32)
+            .chain(0..links.element.len() as u32)
             .filter(|&n| !links.into_node(n).is_empty())
             .collect();
         let mut all: Vec<(u32, u32, DVec3)> = receivers
@@ -170,9 +170,11 @@ impl Transfer {
         self.src.is_empty()
     }
 
-    /// Irradiance per root from today's radiosities (`state.b` for roots,
-    /// `state.clusters` for clusters): the vectors of the nodes on each root's chain,
-    /// summed down the tree, read along the root's normal.
+    /// Irradiance per element from today's radiosities (`state.b` for roots,
+    /// `state.clusters` for clusters): for a root, the vectors of the nodes on its chain
+    /// of clusters, summed down the tree, read along its normal; for an element below a
+    /// root, the vectors landed on it (what its ancestors receive is pushed down by the
+    /// solve).
     pub fn gather(&self, t: &Tree, e: &Elements, state: &State) -> Vec<[f64; 3]> {
         let at: Vec<[DVec3; 3]> = (0..self.target.len())
             .into_par_iter()
@@ -188,7 +190,7 @@ impl Transfer {
             })
             .collect();
         let mut down = vec![[DVec3::ZERO; 3]; t.len()];
-        let mut own = vec![[DVec3::ZERO; 3]; e.roots];
+        let mut own = vec![[DVec3::ZERO; 3]; e.len()];
         for (&q, v) in self.target.iter().zip(at) {
             if is_cluster(q) {
                 down[(q & !CLUSTER) as usize] = v;
@@ -206,12 +208,12 @@ impl Transfer {
                 }
             }
         }
-        (0..e.roots)
+        (0..e.len())
             .into_par_iter()
             .map(|r| {
                 let mut v = own[r];
                 let p = t.root_parent.get(r).copied().unwrap_or(NONE);
-                if p != NONE {
+                if r < e.roots && p != NONE {
                     for k in 0..3 {
                         v[k] += down[p as usize][k];
                     }
