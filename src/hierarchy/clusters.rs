@@ -10,7 +10,8 @@
 //! cluster keeps its bounding box and sphere, its visible area, the largest reflectance
 //! of its roots, and a cone holding its normals (axis and half-angle, Sillion's oriented
 //! clusters; a full cone when the normals spread over more than a hemisphere). A *node* is
-//! a cluster (handle with [`CLUSTER`] set) or a root element.
+//! a cluster (handle with [`CLUSTER`] set) or an element: a root, or, on the receiving
+//! side of a link, an element below a root.
 //!
 //! **Links.** Refinement starts from the self-link of the top cluster. A pair of nodes
 //! `R ← S`, one of them a cluster, whose bounding spheres (centres `d` apart, radii
@@ -51,9 +52,14 @@
 //! pair, as for a partly visible element link). A pair is accepted when `ε ≤ eps` and
 //! its relative term `(4ds/(d - s)² + 2α)/√K + δ_v` is at most
 //! [`super::Settings::cluster_accuracy`] (by default any: the transfer bound alone
-//! decides, as in Smits et al.'s BF refinement); pairs of two roots become element links
-//! ([`super::link::evaluate`]); otherwise the node with the larger sphere is split (the
-//! other one when the larger is a root). A link whose rays were all blocked is dropped
+//! decides, as in Smits et al.'s BF refinement); pairs of two elements become element
+//! links ([`super::link::evaluate`]); otherwise the node with the larger sphere is split:
+//! a cluster into its two children, a receiving element larger than its source cluster
+//! into its four element children (split on demand, to the minimum area; Sillion's links
+//! between clusters and elements at any level). Splitting only clusters linked a large
+//! root (a floor under a group of spheres) to every face of the group by element links,
+//! and each of its leaves then gathered from every face: at 61,440 sphere faces a floor
+//! leaf's chain held 1,590 element links, now 83, as at 15,360. A link whose rays were all blocked is dropped
 //! when `3/n` of `F_up` is within the share `hide` of the tolerance, else refined. A
 //! link whose source has no projected area toward the receiver's centre (`P_S(w) = 0`)
 //! is dropped only when no root of either side has a corner in front of a root of the
@@ -474,9 +480,6 @@ pub struct Refiner<'a> {
     /// Smallest area an element split for a cluster link's receiver may have (a quarter
     /// of its parent's at least this).
     pub min_area: f64,
-    /// Per root its visible area times its luminance `A_j L(B_j)`, and per cluster the sum
-    /// of `A_j L(B_j) n_j` over its roots, made on first use ([`Refiner::exitance`]).
-    pub bright: std::sync::OnceLock<(Vec<f64>, Vec<DVec3>)>,
 }
 
 /// What a pair of nodes becomes.
@@ -725,36 +728,6 @@ impl Refiner<'_> {
         projected(self.tree, self.elements, self.visible, moments, s, w)
     }
 
-    /// The brightness-weighted projected area of node `s` toward `w`: `X_S(w) / L(B_S)`
-    /// with `X_S(w) = Σ_j A_j L(B_j) max(0, n_j·w)` the luminance its faces send toward
-    /// `w` (times π) and `B_S` its mean radiosity; [`Refiner::projected`] when `s` is
-    /// dark. Where a cluster's radiosity varies with orientation (the tops of spheres
-    /// under a light are brighter than their bottoms, and the ceiling sees the tops),
-    /// `B_S P_S(w)` misses the exitance toward `w` with one sign for each receiver
-    /// (measured: the ceiling of `room-spheres-2` 0.7% dark against the unclustered bake);
-    /// `B_S` times this area is `X_S(w)` in luminance. The shape `L(B_j) / L(B_S)` is
-    /// taken from the radiosity of the refinement (one pass behind the final solve, whose
-    /// leaf radiosity it matches to 1-5%); the level `B_S` from the solve.
-    pub fn exitance(&self, s: u32, w: DVec3) -> f64 {
-        let mean = crate::scene::luminance(self.source(s).0);
-        if !is_cluster(s) || mean <= 0.0 {
-            return self.projected(s, w);
-        }
-        let (area, m) = self.bright.get_or_init(|| {
-            let area = self.bright_areas();
-            let m = moments(self.tree, self.elements, &area);
-            (area, m)
-        });
-        projected(self.tree, self.elements, area, m, s, w) / mean
-    }
-
-    /// Per root, its visible area times its luminance ([`Refiner::exitance`]).
-    fn bright_areas(&self) -> Vec<f64> {
-        (0..self.elements.roots)
-            .map(|k| self.visible[k] * crate::scene::luminance(self.b[k]))
-            .collect()
-    }
-
     /// A point of node `n` drawn by visible area: the point, its normal, its area weight
     /// (Jacobian over the root's area) and the exposed fraction of the leaf it lies on
     /// (below 1 on a partly buried leaf: [`Elements::exposed`]). A root is drawn by its
@@ -971,8 +944,7 @@ pub struct Piece {
     pub node: u32,
     /// Its centre.
     pub at: DVec3,
-    /// Its brightness-weighted projected area toward the receiver's centre
-    /// ([`Refiner::exitance`]): `P_n(w)` where its radiosity is uniform.
+    /// Its projected area `P_n(w)` toward the receiver's centre.
     pub p: f64,
     /// The direction `w` from its centre to the receiver's. Its near-field points
     /// ([`sample_points`], keyed on the receiving node and this node) are drawn where
@@ -1046,7 +1018,7 @@ impl Refiner<'_> {
                 out.push(Piece {
                     node: n,
                     at: c,
-                    p: if p > 0.0 { self.exitance(n, w) } else { 0.0 },
+                    p,
                     w,
                 });
             }
@@ -1140,9 +1112,7 @@ pub fn projected(
 /// one point per `1/k` of its area. Triangles are mapped by `u = √ξ` (uniform by
 /// area); the weights carry the remaining Jacobian, and the ratio of each root's visible
 /// area today (`visible`) to the one the tree was built with, so that the weights'
-/// expectation is today's visible area and that of `facing` today's `P_n(w)`. With
-/// `bright` (per root `L(B_j) / L(B_n)`, [`Refiner::exitance`]) both are weighted by it,
-/// so that `facing`'s expectation is the piece's brightness-weighted projected area.
+/// expectation is today's visible area and that of `facing` today's `P_n(w)`.
 #[allow(clippy::too_many_arguments)]
 pub fn sample_points(
     t: &Tree,
@@ -1153,7 +1123,6 @@ pub fn sample_points(
     r: u32,
     n: u32,
     w: DVec3,
-    bright: &dyn Fn(u32) -> f64,
 ) -> Vec<Sample> {
     if k == 0 {
         return Vec::new();
@@ -1193,7 +1162,7 @@ pub fn sample_points(
             crate::formfactor::exact::Piece::Quad(_) => e.piece[mi].at(xi, 1.0 - xi, v, 1.0 - v),
         };
         let today = if vis > 0.0 { visible[mi] / vis } else { 0.0 };
-        let weight = (b - a) * inv * wj / e.area[mi].max(1e-300) * today * bright(m);
+        let weight = (b - a) * inv * wj / e.area[mi].max(1e-300) * today;
         out.push(Sample {
             at: p,
             root: m,
@@ -1297,10 +1266,6 @@ pub struct Expansion<'a> {
     pub seed: u64,
     /// Points per piece ([`POINTS`]).
     pub points: usize,
-    /// Per root, its luminance when the pieces were cut ([`Refiner::exitance`]).
-    pub root_luminance: Vec<f64>,
-    /// Per cluster, its mean luminance then.
-    pub cluster_luminance: Vec<f64>,
 }
 
 impl Expansion<'_> {
@@ -1326,18 +1291,6 @@ impl Expansion<'_> {
                 let mut all = Vec::new();
                 for ps in self.pieces.of(node) {
                     for p in ps {
-                        let mean = if is_cluster(p.node) {
-                            self.cluster_luminance[(p.node & !CLUSTER) as usize]
-                        } else {
-                            0.0
-                        };
-                        let bright = |m: u32| {
-                            if mean > 0.0 {
-                                self.root_luminance[m as usize] / mean
-                            } else {
-                                1.0
-                            }
-                        };
                         all.push(sample_points(
                             self.tree,
                             e,
@@ -1347,7 +1300,6 @@ impl Expansion<'_> {
                             node,
                             p.node,
                             p.w,
-                            &bright,
                         ));
                     }
                 }
@@ -1568,7 +1520,7 @@ pub(super) mod tests {
             let runs = 400;
             let (mut sum, mut sq_err, mut se2) = (0.0, 0.0, 0.0);
             for r in 0..runs {
-                let samples = sample_points(&t, &e, &vis, 1, POINTS, r, 0, w, &|_| 1.0);
+                let samples = sample_points(&t, &e, &vis, 1, POINTS, r, 0, w);
                 let (f, se) = piece_factor(&piece, &samples, 1.0, &e, 1);
                 sum += f;
                 sq_err += (f - exact).powi(2);

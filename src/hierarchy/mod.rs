@@ -624,15 +624,12 @@ fn expansion<'a>(
     let rho_max = vec![0.0; e.roots];
     let f = refiner(t, e, &visible, &rho_max, vis, state, (0.0, eps, 0.0), s);
     let pieces = f.all_pieces(clinks, s.descend);
-    let lum = crate::scene::luminance;
     Some(clusters::Expansion {
         tree: t,
         links: clinks,
         pieces,
         seed: f.seed,
         points: f.points,
-        root_luminance: state.b[..e.roots].iter().map(|&b| lum(b)).collect(),
-        cluster_luminance: state.clusters.b.iter().map(|&b| lum(b)).collect(),
         visible,
     })
 }
@@ -685,7 +682,6 @@ fn refiner<'a>(
         points: clusters::POINTS,
         moments: std::sync::OnceLock::new(),
         min_area,
-        bright: std::sync::OnceLock::new(),
     }
 }
 

@@ -28,7 +28,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::blockers::{bounds, range};
+use super::blockers::{bounds, range, BoxTree};
 use super::element::Elements;
 use super::link::Link;
 use crate::formfactor::hemisphere::{basis, cosine_direction};
@@ -185,17 +185,17 @@ pub type Contact = (DVec3, DVec3);
 pub fn contacts(e: &Elements, tol: f64) -> Vec<Vec<Contact>> {
     let n = e.roots;
     let boxes: Vec<(DVec3, DVec3)> = (0..n as u32).map(|k| bounds(e.corners(k))).collect();
+    let tree = BoxTree::new(&boxes, (0..n as u32).collect());
     (0..n)
         .into_par_iter()
         .map(|r| {
             let plane = (e.normal[r], e.centre[r]);
             let (lo, hi) = (boxes[r].0 - tol, boxes[r].1 + tol);
             let mut out = Vec::new();
-            for (s, &(ls, hs)) in boxes.iter().enumerate() {
+            let mut near = Vec::new();
+            tree.overlapping(&boxes, lo, hi, &mut near);
+            for s in near.into_iter().map(|s| s as usize) {
                 if s == r || e.normal[r].dot(e.normal[s]).abs() > 1.0 - 1e-9 {
-                    continue;
-                }
-                if ls.cmpgt(hi).any() || hs.cmplt(lo).any() {
                     continue;
                 }
                 let c = e.corners(s as u32);
@@ -258,10 +258,17 @@ pub fn crosses(e: &Elements, el: u32, seg: Contact, tol: f64) -> bool {
 /// standing side is refined along it as finely as the side it stands on.
 pub fn standing(e: &Elements, contacts: &[Vec<Contact>], tol: f64) -> Vec<Vec<Contact>> {
     let mut out: Vec<Vec<Contact>> = vec![Vec::new(); e.roots];
+    let boxes: Vec<(DVec3, DVec3)> = (0..e.roots as u32).map(|k| bounds(e.corners(k))).collect();
+    let tree = BoxTree::new(&boxes, (0..e.roots as u32).collect());
+    let mut near = Vec::new();
     for segs in contacts {
         for &(a, b) in segs {
-            for (s, list) in out.iter_mut().enumerate() {
-                let c = e.corners(s as u32);
+            // An edge holding both ends has them in its box.
+            near.clear();
+            tree.overlapping(&boxes, a.min(b) - tol, a.max(b) + tol, &mut near);
+            for &s in &near {
+                let list = &mut out[s as usize];
+                let c = e.corners(s);
                 let on_edge = (0..c.len()).any(|k| {
                     let (p, q) = (c[k], c[(k + 1) % c.len()]);
                     (p.distance(a) <= tol && q.distance(b) <= tol)

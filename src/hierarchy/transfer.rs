@@ -16,8 +16,10 @@
 //!   the vectors of all the links above a root add up before it reads them;
 //! - a cluster whose every root faces away receives nothing;
 //! - a cluster with roots on both sides is cut into its children;
-//! - a root receives the exact solid angle of its polygon from `c`, `v P Ω_l / (π A_l)`
-//!   (as [`super::clusters::piece_factor`]'s point term), along its normal.
+//! - an element (a root, or a receiver below one) receives the exact solid angle of its
+//!   polygon from `c`, `v P Ω_l / (π A_l)` (as [`super::clusters::piece_factor`]'s point
+//!   term), along its normal; what lands on an element below a root is pushed down its
+//!   element tree by the solve with the rest of its irradiance.
 //!
 //! The kernel's variation over the pair (`1/d²` and the cosines over both bounding
 //! spheres) is the link bound's geometric term `4ds/(d - s)² + 2α` without the near-field
