@@ -316,6 +316,11 @@ struct HierarchyArgs {
     /// the link tolerance alone decides; 1 to 3: fewer savings, closer to unclustered).
     #[arg(long, default_value_t = f64::INFINITY)]
     cluster_accuracy: f64,
+    /// Hierarchical with clusters: split a receiving face larger than its source cluster
+    /// into elements (cluster links below the faces; faster and leaner on large faces,
+    /// noisier on small ones: docs/HIERARCHY.md, Clustering).
+    #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::SPLIT_RECEIVERS { Switch::On } else { Switch::Off })]
+    split_receivers: Switch,
     /// Hierarchical: cap on refine-and-solve passes.
     #[arg(long, default_value_t = 8)]
     max_passes: usize,
@@ -762,6 +767,7 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
                 seed: args.est.seed,
                 clusters: args.hier.clusters == Switch::On,
                 cluster_accuracy: args.hier.cluster_accuracy,
+                split_receivers: args.hier.split_receivers == Switch::On,
                 max_memory: args.est.max_memory,
                 ..Default::default()
             };

@@ -414,11 +414,9 @@ fn clustered_and_unclustered_bakes_agree() {
         a.report.rows_over_one,
         b.report.rows_over_one
     );
-    // Measured: objects within 0.07%, roots within 0.91%, 4.3x fewer initial links and
-    // 2.2x fewer links (docs/HIERARCHY.md, Clustering). Before receivers were split for
-    // cluster links: 0.09%, 0.59%, 5.9x (the floor took an element link from every
-    // sphere face, made with the rest at the start). With the point source alone: 1.4%
-    // (every object darker) and 1.8%.
+    // Measured: objects within 0.10%, roots within 0.59%, 5.9x fewer initial links
+    // (docs/HIERARCHY.md, Clustering); with `split_receivers` 0.10%, 0.91%, 4.3x. With
+    // the point source alone: 1.4% (every object darker) and 1.8%.
     assert!(
         worst_tight < 0.0015,
         "objects differ by {worst_tight} at accuracy 3"
@@ -427,7 +425,7 @@ fn clustered_and_unclustered_bakes_agree() {
     assert!(a.report.cluster_links > 0);
     assert!(worst_obj < 0.005, "object averages differ by {worst_obj}");
     assert!(worst_root < 0.015, "root averages differ by {worst_root}");
-    assert!(ia * 4 < ib, "initial links {ia} vs {ib}");
+    assert!(ia * 5 < ib, "initial links {ia} vs {ib}");
 }
 
 /// The closed cube cut into 16 x 16 patches a face, far enough apart for cluster links
@@ -552,17 +550,18 @@ fn cornell_furnace_keeps_its_light() {
 }
 
 /// Leaf luminance at 4 points of every root (parameters `(1/4 or 3/4, 1/4 or 3/4)`), as
-/// `(root, value)`; points on buried leaves are left out.
-fn points(sol: &Solution) -> Vec<(usize, f64)> {
+/// `(root, value)`, `None` on a buried leaf.
+fn points(sol: &Solution) -> Vec<(usize, Option<f64>)> {
     use radiosity::scene::luminance;
     let e = &sol.elements;
     let mut out = Vec::new();
     for r in 0..e.roots as u32 {
         for (u, v) in [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)] {
             let l = e.locate(r, u, v).0 as usize;
-            if !e.buried[l] {
-                out.push((r as usize, luminance(sol.state.b[l])));
-            }
+            out.push((
+                r as usize,
+                (!e.buried[l]).then(|| luminance(sol.state.b[l])),
+            ));
         }
     }
     out
@@ -614,11 +613,15 @@ fn clustered_and_unclustered_at_ten_thousand_triangles() {
         .collect();
     let (pa, pb) = (points(&a), points(&b));
     assert_eq!(pa.len(), pb.len());
+    // A point on a leaf buried in either bake (the two split the leaves around the light
+    // differently) is left out.
     let pts: Vec<f64> = pa
         .iter()
         .zip(&pb)
-        .filter(|(_, y)| y.1 > 0.0)
-        .map(|(x, y)| rel(x.1, y.1))
+        .filter_map(|(x, y)| match (x.1, y.1) {
+            (Some(x), Some(y)) if y > 0.0 => Some(rel(x, y)),
+            _ => None,
+        })
         .collect();
     let summary = |v: &[f64]| {
         let mut s = v.to_vec();

@@ -54,12 +54,14 @@
 //! [`super::Settings::cluster_accuracy`] (by default any: the transfer bound alone
 //! decides, as in Smits et al.'s BF refinement); pairs of two elements become element
 //! links ([`super::link::evaluate`]); otherwise the node with the larger sphere is split:
-//! a cluster into its two children, a receiving element larger than its source cluster
-//! into its four element children (split on demand, to the minimum area; Sillion's links
-//! between clusters and elements at any level). Splitting only clusters linked a large
-//! root (a floor under a group of spheres) to every face of the group by element links,
-//! and each of its leaves then gathered from every face: at 61,440 sphere faces a floor
-//! leaf's chain held 1,590 element links, now 83, as at 15,360. A link whose rays were all blocked is dropped
+//! a cluster into its two children; an element only with
+//! [`super::Settings::split_receivers`] (a receiving element larger than its source
+//! cluster into its four element children, on demand, to the minimum area; Sillion's
+//! links between clusters and elements at any level), else the other node. Splitting
+//! only clusters links a large root (a floor under a group of spheres) to every face of
+//! the group by element links, and each of its leaves then gathers from every face: at
+//! 61,440 sphere faces a floor leaf's chain held 1,590 element links, 83 with receivers
+//! split (as at 15,360). A link whose rays were all blocked is dropped
 //! when `3/n` of `F_up` is within the share `hide` of the tolerance, else refined. A
 //! link whose source has no projected area toward the receiver's centre (`P_S(w) = 0`)
 //! is dropped only when no root of either side has a corner in front of a root of the
@@ -480,6 +482,9 @@ pub struct Refiner<'a> {
     /// Smallest area an element split for a cluster link's receiver may have (a quarter
     /// of its parent's at least this).
     pub min_area: f64,
+    /// Whether a receiving element larger than its source cluster is split
+    /// ([`super::Settings::split_receivers`]); else the source is.
+    pub split_receivers: bool,
 }
 
 /// What a pair of nodes becomes.
@@ -544,8 +549,9 @@ impl Refiner<'_> {
     }
 
     /// What replaces `r ← s`: the pairs of the larger node's children (by sphere radius).
-    /// A receiving element larger than its source cluster is split into its four element
-    /// children ([`Outcome::Subdivide`] when it has none yet), down to [`Refiner::min_area`]:
+    /// With [`Refiner::split_receivers`], a receiving element larger than its source
+    /// cluster is split into its four element children ([`Outcome::Subdivide`] when it
+    /// has none yet), down to [`Refiner::min_area`]:
     /// else a floor under a group of spheres would be linked to every face of the group
     /// (the source split down to its roots, as the larger node), and each of its leaves
     /// would gather from all of them. A source root and a cluster receiver: the receiver.
@@ -557,7 +563,11 @@ impl Refiner<'_> {
         }
         let e = self.elements;
         let k = r as usize;
-        if !is_cluster(r) && rs.radius > ss.radius && e.area[k] / 4.0 >= self.min_area {
+        if self.split_receivers
+            && !is_cluster(r)
+            && rs.radius > ss.radius
+            && e.area[k] / 4.0 >= self.min_area
+        {
             if e.is_leaf(r) {
                 return Outcome::Subdivide(r, s);
             }
