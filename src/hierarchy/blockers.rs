@@ -50,7 +50,7 @@ pub struct Blockers {
 }
 
 /// A bounding-volume tree over some of a list of boxes (median split on the longest axis,
-/// at most [`LEAF`] boxes a leaf): the candidate blockers' tree, and the contact search's
+/// at most `LEAF` boxes a leaf): the candidate blockers' tree, and the contact search's
 /// ([`super::refine::contacts`]), which without it compared every pair of roots (61% of
 /// the first two minutes of a 245,760-face bake).
 #[derive(Clone, Debug, Default)]
