@@ -172,6 +172,10 @@ struct StudyBakesArgs {
     /// Cap of a receiver's radiosity in its link tolerance, as a share of the mean.
     #[arg(long, default_value_t = radiosity::hierarchy::RELATIVE_HIGH)]
     relative_high: f64,
+    /// Share of the link tolerance above which the final gather cuts a source into its
+    /// children (see `bake --descend`).
+    #[arg(long, default_value_t = radiosity::hierarchy::DESCEND)]
+    descend: f64,
 }
 
 #[derive(Args, Debug)]
@@ -317,10 +321,15 @@ struct HierarchyArgs {
     #[arg(long, default_value_t = f64::INFINITY)]
     cluster_accuracy: f64,
     /// Hierarchical with clusters: split a receiving face larger than its source cluster
-    /// into elements (cluster links below the faces; faster and leaner on large faces,
-    /// noisier on small ones: docs/HIERARCHY.md, Clustering).
+    /// into elements (cluster links below the faces; faster and leaner on large faces, but
+    /// biased in shadows where objects block each other: docs/HIERARCHY.md, Clustering).
     #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::SPLIT_RECEIVERS { Switch::On } else { Switch::Off })]
     split_receivers: Switch,
+    /// Hierarchical: share of the link tolerance above which the final gather cuts a
+    /// source whose radiosity varies into its children (larger: a faster, leaner gather
+    /// that takes sources' mean radiosity more often; docs/HIERARCHY.md).
+    #[arg(long, default_value_t = radiosity::hierarchy::DESCEND)]
+    descend: f64,
     /// Hierarchical: cap on refine-and-solve passes.
     #[arg(long, default_value_t = 8)]
     max_passes: usize,
@@ -768,6 +777,7 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
                 clusters: args.hier.clusters == Switch::On,
                 cluster_accuracy: args.hier.cluster_accuracy,
                 split_receivers: args.hier.split_receivers == Switch::On,
+                descend: args.hier.descend,
                 max_memory: args.est.max_memory,
                 ..Default::default()
             };
@@ -898,6 +908,7 @@ fn study_bakes(args: &StudyBakesArgs) -> Result<()> {
         errors: args.errors.clone(),
         rays: args.link_rays,
         relative: (args.relative_low, args.relative_high),
+        descend: args.descend,
         ..bakes::Settings::full(args.output.clone())
     };
     let (runs, refs) = bakes::run(&settings)?;

@@ -270,6 +270,9 @@ pub struct Settings {
     /// Floor and cap of a receiver's radiosity in its link tolerance
     /// ([`hierarchy::Settings::relative_low`], `relative_high`).
     pub relative: (f64, f64),
+    /// Share of the link tolerance above which the final gather cuts a source into its
+    /// children ([`hierarchy::Settings::descend`]).
+    pub descend: f64,
     /// Output folder.
     pub out: PathBuf,
 }
@@ -284,6 +287,7 @@ impl Settings {
             errors: vec![0.04, 0.02, 0.01, 0.005, 0.0025],
             rays: hierarchy::Settings::default().rays,
             relative: (hierarchy::RELATIVE_LOW, hierarchy::RELATIVE_HIGH),
+            descend: hierarchy::DESCEND,
             out,
         }
     }
@@ -337,6 +341,7 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
             rays: s.rays,
             relative_low: s.relative.0,
             relative_high: s.relative.1,
+            descend: s.descend,
             ..Default::default()
         };
         settings.validate()?;
