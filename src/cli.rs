@@ -321,8 +321,8 @@ struct HierarchyArgs {
     #[arg(long, default_value_t = f64::INFINITY)]
     cluster_accuracy: f64,
     /// Hierarchical with clusters: split a receiving face larger than its source cluster
-    /// into elements (cluster links below the faces; faster and leaner on large faces, but
-    /// biased in shadows where objects block each other: docs/HIERARCHY.md, Clustering).
+    /// into elements (cluster links below the faces; faster and leaner on large faces, and
+    /// sharper shadows on them: docs/HIERARCHY.md, Clustering).
     #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::SPLIT_RECEIVERS { Switch::On } else { Switch::Off })]
     split_receivers: Switch,
     /// Hierarchical: share of the link tolerance above which the final gather cuts a
