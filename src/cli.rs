@@ -325,6 +325,11 @@ struct HierarchyArgs {
     /// sharper shadows on them: docs/HIERARCHY.md, Clustering).
     #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::SPLIT_RECEIVERS { Switch::On } else { Switch::Off })]
     split_receivers: Switch,
+    /// Hierarchical: a partly visible link whose shadow boundary crosses its receiver
+    /// splits the receiver first (sharper shadows from large lights, for more CPU:
+    /// docs/HIERARCHY.md, Shadows across receivers).
+    #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::SPLIT_SHADOWS { Switch::On } else { Switch::Off })]
+    split_shadows: Switch,
     /// Hierarchical: share of the link tolerance above which the final gather cuts a
     /// source whose radiosity varies into its children (larger: a faster, leaner gather
     /// that takes sources' mean radiosity more often; docs/HIERARCHY.md).
@@ -778,6 +783,7 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
                 cluster_accuracy: args.hier.cluster_accuracy,
                 split_receivers: args.hier.split_receivers == Switch::On,
                 descend: args.hier.descend,
+                split_shadows: args.hier.split_shadows == Switch::On,
                 max_memory: args.est.max_memory,
                 ..Default::default()
             };

@@ -66,6 +66,11 @@ pub struct Link {
     /// True when [`Blockers`] proved that nothing blocks the pair (no ray was cast): then
     /// nothing blocks any pair of their pieces either.
     pub proved: bool,
+    /// True when the rays found the shadow boundary across the receiver: the visible
+    /// fractions of its quadrants' rays differ by at least [`ACROSS`] (else a partly
+    /// visible link's shadow lies across the source, which splitting the receiver does not
+    /// resolve).
+    pub across: bool,
     /// The unoccluded factor (`f` is this times `vis`): what the refinement decides on
     /// where visibility was sampled, so that the rays' noise does not pick which links are
     /// kept ([`super::refine::Oracle::error`]).
@@ -223,6 +228,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
             se: 0.0,
             df: (fmax - fmin) + q_err,
             partial: false,
+            across: false,
             vis: 1.0,
             proved: true,
             open: f_open,
@@ -243,6 +249,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
             se: f_open * fraction_se(0.0, n),
             df: fmax + q_err,
             partial: true,
+            across: false,
             vis: 0.0,
             proved: false,
             open: f_open,
@@ -256,6 +263,7 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
             se: f_open * fraction_se(seen.v, n),
             df: if partial { fmax } else { fmax - fmin } + q_err,
             partial,
+            across: seen.across,
             vis: seen.v,
             proved: false,
             open: f_open,
@@ -303,7 +311,14 @@ pub struct Seen {
     pub v: f64,
     /// Rays traced.
     pub rays: u64,
+    /// The receiver's quadrants saw different fractions ([`Link::across`]).
+    pub across: bool,
 }
+
+/// Least difference between the visible fractions of a receiver's quadrants (each from
+/// its quarter of the `n × n` receiver strata) for a link's shadow boundary to be taken as
+/// lying across the receiver ([`Link::across`]).
+pub const ACROSS: f64 = 0.5;
 
 /// Tries per stratum at finding a receiver point that is not buried.
 pub(super) const BURIED_TRIES: usize = 4;
@@ -396,6 +411,7 @@ fn visible_fraction_keyed(
     let whole = e.is_leaf(r);
     let mut segs: Vec<SegmentRay> = Vec::with_capacity(cells);
     let mut weights: Vec<f64> = Vec::with_capacity(cells);
+    let mut quadrant: Vec<u8> = Vec::with_capacity(cells);
     for (c, &d) in perm.iter().enumerate() {
         let (a, b) = ((c % n) as f64, (c / n) as f64);
         let mut at = None;
@@ -414,6 +430,7 @@ fn visible_fraction_keyed(
             continue;
         };
         weights.push(w);
+        quadrant.push(u8::from(2 * (c % n) >= n) + 2 * u8::from(2 * (c / n) >= n));
         segs.push(ctx.vis.segment_ray(x, nr, y, ns));
     }
     let mean = match open {
@@ -423,7 +440,11 @@ fn visible_fraction_keyed(
     };
     let partly = partly && mean > 0.0;
     if segs.is_empty() && !partly {
-        return Seen { v: 0.0, rays: 0 };
+        return Seen {
+            v: 0.0,
+            rays: 0,
+            across: false,
+        };
     }
     let mut free = vec![false; segs.len()];
     ctx.vis.segments_visible(&segs, &mut free);
@@ -453,8 +474,20 @@ fn visible_fraction_keyed(
     } else {
         1.0
     };
+    // Per quadrant of the receiver: rays free and cast.
+    let mut per = [(0u32, 0u32); 4];
+    for (&q, &f) in quadrant.iter().zip(&free) {
+        per[q as usize].0 += u32::from(f);
+        per[q as usize].1 += 1;
+    }
+    let fractions = per
+        .iter()
+        .filter(|p| p.1 > 0)
+        .map(|p| f64::from(p.0) / f64::from(p.1));
+    let (lo, hi) = fractions.fold((1.0f64, 0.0f64), |(lo, hi), x| (lo.min(x), hi.max(x)));
     Seen {
         v,
         rays: segs.len() as u64,
+        across: hi - lo >= ACROSS,
     }
 }

@@ -124,6 +124,9 @@ pub struct Oracle<'a> {
     pub tol: Relative,
     /// No element is split into children smaller than this.
     pub min_area: f64,
+    /// Split the receiver first of a partly visible link whose shadow boundary lies
+    /// across it ([`Link::across`]; [`super::Settings::split_shadows`]).
+    pub shadows: bool,
 }
 
 impl Oracle<'_> {
@@ -164,7 +167,9 @@ impl Oracle<'_> {
             (true, false) => Decision::SplitReceiver,
             (false, true) => Decision::SplitSource,
             (true, true) => {
-                if spr > var || a[l.src as usize] > a[r as usize] {
+                if self.shadows && l.across && var >= spr {
+                    Decision::SplitReceiver
+                } else if spr > var || a[l.src as usize] > a[r as usize] {
                     Decision::SplitSource
                 } else {
                     Decision::SplitReceiver
@@ -512,6 +517,7 @@ mod tests {
             se: 0.0,
             df: 0.2,
             partial: false,
+            across: false,
             vis: 1.0,
             proved: false,
             open: 0.1,
@@ -530,6 +536,7 @@ mod tests {
             spread: &spread,
             tol: tol(0.05),
             min_area: 1.0,
+            shadows: false,
         };
         // Error 0.5 * 1 * 0.2 = 0.1 > 0.05: split (receiver on a tie of areas).
         assert_eq!(o.decide(0, &link), Decision::SplitReceiver);
@@ -579,6 +586,7 @@ mod tests {
             se: 0.0,
             df: 0.015,
             partial: false,
+            across: false,
             vis: 1.0,
             proved: false,
             open: 0.1,
@@ -592,6 +600,7 @@ mod tests {
                 spread: &spread,
                 tol,
                 min_area: 1.0,
+                shadows: false,
             }
             .decide(1, &link)
         };
