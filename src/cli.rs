@@ -176,6 +176,10 @@ struct StudyBakesArgs {
     /// children (see `bake --descend`).
     #[arg(long, default_value_t = radiosity::hierarchy::DESCEND)]
     descend: f64,
+    /// Split the receivers of links whose shadow boundary crosses them first (see `bake
+    /// --split-shadows`).
+    #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::SPLIT_SHADOWS { Switch::On } else { Switch::Off })]
+    split_shadows: Switch,
 }
 
 #[derive(Args, Debug)]
@@ -915,6 +919,7 @@ fn study_bakes(args: &StudyBakesArgs) -> Result<()> {
         rays: args.link_rays,
         relative: (args.relative_low, args.relative_high),
         descend: args.descend,
+        split_shadows: args.split_shadows == Switch::On,
         ..bakes::Settings::full(args.output.clone())
     };
     let (runs, refs) = bakes::run(&settings)?;

@@ -273,6 +273,9 @@ pub struct Settings {
     /// Share of the link tolerance above which the final gather cuts a source into its
     /// children ([`hierarchy::Settings::descend`]).
     pub descend: f64,
+    /// Split the receivers of links whose shadow boundary crosses them first
+    /// ([`hierarchy::Settings::split_shadows`]).
+    pub split_shadows: bool,
     /// Output folder.
     pub out: PathBuf,
 }
@@ -288,6 +291,7 @@ impl Settings {
             rays: hierarchy::Settings::default().rays,
             relative: (hierarchy::RELATIVE_LOW, hierarchy::RELATIVE_HIGH),
             descend: hierarchy::DESCEND,
+            split_shadows: hierarchy::SPLIT_SHADOWS,
             out,
         }
     }
@@ -342,6 +346,7 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
             relative_low: s.relative.0,
             relative_high: s.relative.1,
             descend: s.descend,
+            split_shadows: s.split_shadows,
             ..Default::default()
         };
         settings.validate()?;
