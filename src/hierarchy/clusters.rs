@@ -380,9 +380,10 @@ impl Links {
         self.cluster.iter().chain(&self.element).map(Vec::len).sum()
     }
 
-    /// True when there are none.
+    /// True when there are none (stops at the first list with a link: it is asked per
+    /// element, and the count is over every node).
     pub fn is_empty(&self) -> bool {
-        self.len() == 0
+        self.cluster.iter().chain(&self.element).all(Vec::is_empty)
     }
 }
 
@@ -1293,7 +1294,9 @@ impl Expansion<'_> {
         out: &mut Vec<(u32, f64, f64)>,
         cache: &mut PointCache,
     ) {
-        if e.buried[l as usize] || self.links.is_empty() {
+        // No test of `self.links.is_empty()` here: this runs per leaf, and a node with no
+        // links adds nothing below.
+        if e.buried[l as usize] {
             return;
         }
         for node in chain(self.tree, e, l) {
