@@ -14,6 +14,7 @@
 
 pub mod area;
 pub mod exact;
+pub mod far;
 pub mod hemicube;
 pub mod hemisphere;
 pub mod semi;

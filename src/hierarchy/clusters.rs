@@ -72,11 +72,14 @@
 //! Links are re-examined each pass with the new radiosities (multigridding), and a link
 //! whose error grew past the tolerance is replaced by its children's pairs.
 
+use std::f64::consts::PI;
+
 use glam::DVec3;
 use rayon::prelude::*;
 
 use super::element::{Elements, NONE};
 use crate::formfactor::exact::{point_factor, Receiver};
+use crate::formfactor::far::{self, Small};
 use crate::sampling::{fraction_se, Pcg32};
 use crate::visibility::{SegmentRay, Visibility};
 
@@ -1205,7 +1208,8 @@ pub fn solid_angle(y: DVec3, poly: &[DVec3], n: DVec3) -> f64 {
 }
 
 /// The factor of element `l` from a piece of a link's source seen through visible
-/// fraction `v`, and the standard error of its sampling.
+/// fraction `v`, the standard error of its sampling, and the bound on its one-point rules
+/// (`small` is `l`'s polygon as [`far::Small`]).
 ///
 /// The point estimate treats the piece as a point source of intensity `B P / π` at its
 /// centre `c`, so that the element's mean irradiance is `B P Ω_c / (π A_l)` with `Ω_c` the
@@ -1227,18 +1231,42 @@ pub fn solid_angle(y: DVec3, poly: &[DVec3], n: DVec3) -> f64 {
 /// close already (the two terms of each point agree in the far field). Its standard
 /// error is that of the mean of the points' differences (conservative for stratified
 /// points). With no points, the point estimate and no sampling error.
-pub fn piece_factor(piece: &Piece, samples: &[Sample], v: f64, e: &Elements, l: u32) -> (f64, f64) {
+///
+/// An element small beside its distance from a point (at 10^6 input triangles, most are
+/// millimetres across and metres from the sources) takes `F(y → l)` and `Ω_c` by its
+/// centroid ([`far::point_factor`], [`far::solid_angle`]) where the rule's bound is within
+/// [`FAR`] of the value; the bounds, weighted as their terms are, make the entry's
+/// `bound` (deterministic, added linearly as the quadrature's are).
+pub fn piece_factor(
+    piece: &Piece,
+    samples: &[Sample],
+    v: f64,
+    e: &Elements,
+    l: u32,
+    small: &Small,
+) -> PieceFactor {
     let li = l as usize;
     let a = e.area[li];
     if a <= 0.0 {
-        return (0.0, 0.0);
+        return PieceFactor::default();
     }
     let poly = e.corners(l);
-    let cone = solid_angle(piece.at, poly, e.normal[li]) / std::f64::consts::PI;
+    // The one-point rules where their bounds are within `FAR` of the value
+    // ([`crate::formfactor::far`]), Lambert's and Van Oosterom and Strackee's formulas
+    // elsewhere; the rules' bounds add up in `bound`.
+    let (cone, cone_bound) = match far::solid_angle(piece.at, small) {
+        Some((w, b)) if b <= FAR * w => (w / PI, b / PI),
+        _ => (solid_angle(piece.at, poly, e.normal[li]) / PI, 0.0),
+    };
     let base = piece.p * cone;
+    let mut bound = piece.p.abs() * cone_bound;
     let k = samples.len();
     if k == 0 {
-        return (v * base / a, 0.0);
+        return PieceFactor {
+            f: v * base / a,
+            se: 0.0,
+            bound: v * bound / a,
+        };
     }
     let rec = Receiver {
         poly,
@@ -1247,7 +1275,15 @@ pub fn piece_factor(piece: &Piece, samples: &[Sample], v: f64, e: &Elements, l: 
     };
     let (mut sum, mut sum2) = (0.0, 0.0);
     for s in samples {
-        let g = point_factor(s.at, e.normal[s.root as usize], &rec);
+        let n_s = e.normal[s.root as usize];
+        let g = match far::point_factor(s.at, n_s, small) {
+            Some((g, b)) if b <= FAR * g => {
+                bound += s.weight.abs() * b;
+                g
+            }
+            _ => point_factor(s.at, n_s, &rec),
+        };
+        bound += s.facing.abs() * cone_bound;
         let d = s.weight * g - s.facing * cone;
         sum += d;
         sum2 += d * d;
@@ -1259,7 +1295,27 @@ pub fn piece_factor(piece: &Piece, samples: &[Sample], v: f64, e: &Elements, l: 
     } else {
         0.0
     };
-    (v * (base + sum) / a, v * var.sqrt() / a)
+    PieceFactor {
+        f: v * (base + sum) / a,
+        se: v * var.sqrt() / a,
+        bound: v * bound / a,
+    }
+}
+
+/// Largest bound of a one-point rule, relative to its value, for [`piece_factor`] to take
+/// it: the rules' error then stays three orders below the entry, and below the sampling's
+/// standard error of its near-field correction.
+pub const FAR: f64 = 1e-3;
+
+/// What [`piece_factor`] returns.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PieceFactor {
+    /// The factor.
+    pub f: f64,
+    /// The standard error of its sampling.
+    pub se: f64,
+    /// The bound on the one-point rules' error in it (0 where none was used).
+    pub bound: f64,
 }
 
 /// The cluster links with their sources cut into pieces: what an element gathers from
@@ -1281,9 +1337,10 @@ pub struct Expansion<'a> {
 
 impl Expansion<'_> {
     /// The cluster links on the chain of `l`'s root (the root's own and its clusters') as
-    /// `(source node, factor, standard error)` entries appended to `out`, one per piece of
-    /// the link's source ([`Refiner::pieces`], [`piece_factor`]), the standard error
-    /// combining the visible fraction's and the piece's sampling; nothing for a buried
+    /// `(source node, factor, standard error, bound)` entries appended to `out`, one per
+    /// piece of the link's source ([`Refiner::pieces`], [`piece_factor`]), the standard
+    /// error combining the visible fraction's and the piece's sampling, the bound the
+    /// one-point rules'; nothing for a buried
     /// element. Called per element where its list is used, so that no list of every
     /// element's entries is held at once (at 10^5 triangles they were most of the bake's
     /// memory).
@@ -1291,7 +1348,7 @@ impl Expansion<'_> {
         &self,
         e: &Elements,
         l: u32,
-        out: &mut Vec<(u32, f64, f64)>,
+        out: &mut Vec<(u32, f64, f64, f64)>,
         cache: &mut PointCache,
     ) {
         // No test of `self.links.is_empty()` here: this runs per leaf, and a node with no
@@ -1299,6 +1356,7 @@ impl Expansion<'_> {
         if e.buried[l as usize] {
             return;
         }
+        let small = Small::new(e.corners(l), e.normal[l as usize]);
         for node in chain(self.tree, e, l) {
             let points = cache.of(node, || {
                 let mut all = Vec::new();
@@ -1322,10 +1380,10 @@ impl Expansion<'_> {
             for (k, ps) in self.links.into_node(node).iter().zip(self.pieces.of(node)) {
                 let rel = k.v_se / k.v.max(1e-300);
                 for p in ps {
-                    let (f, se) = piece_factor(p, &points[at], k.v, e, l);
+                    let pf = piece_factor(p, &points[at], k.v, e, l, &small);
                     at += 1;
-                    if f > 0.0 {
-                        out.push((p.node, f, (f * rel).hypot(se)));
+                    if pf.f > 0.0 {
+                        out.push((p.node, pf.f, (pf.f * rel).hypot(pf.se), pf.bound));
                     }
                 }
             }
@@ -1526,7 +1584,8 @@ pub(super) mod tests {
                 p: 1.0,
                 w,
             };
-            let point = piece_factor(&piece, &[], 1.0, &e, 1).0;
+            let small = Small::new(e.corners(1), e.normal[1]);
+            let point = piece_factor(&piece, &[], 1.0, &e, 1, &small).f;
             assert!(point > exact * 1.01, "c {c}: point {point} vs {exact}");
             // Over many streams the mean is the exact factor, and each estimate's
             // standard error covers its spread.
@@ -1534,7 +1593,8 @@ pub(super) mod tests {
             let (mut sum, mut sq_err, mut se2) = (0.0, 0.0, 0.0);
             for r in 0..runs {
                 let samples = sample_points(&t, &e, &vis, 1, POINTS, r, 0, w);
-                let (f, se) = piece_factor(&piece, &samples, 1.0, &e, 1);
+                let pf = piece_factor(&piece, &samples, 1.0, &e, 1, &small);
+                let (f, se) = (pf.f, pf.se);
                 sum += f;
                 sq_err += (f - exact).powi(2);
                 se2 += se * se;

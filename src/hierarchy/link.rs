@@ -40,6 +40,7 @@ use glam::DVec3;
 use super::blockers::{range, Blockers};
 use super::element::Elements;
 use crate::formfactor::exact::{self, Emitter, Receiver};
+use crate::formfactor::far;
 use crate::mesh::PatchSet;
 use crate::sampling::{fraction_se, Pcg32};
 use crate::visibility::{SegmentRay, Visibility};
@@ -275,7 +276,9 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
 /// The unoccluded factor `F(l → P_s)` from element `l` to the polygon of element `s`,
 /// `1/A_l ∫_l F(x → P_s) dA_x`, to the relative tolerance [`Context::quadrature`] or the
 /// absolute tolerance `f_tol`: the factor, the quadrature's error estimate of it, and the
-/// point-factor evaluations spent.
+/// point-factor evaluations spent. A leaf small beside its distance from the source takes
+/// the one-point rule at its centroid with that rule's bound
+/// ([`far::centroid_rule_bound`]) instead, where the bound is within the same tolerance.
 pub fn open_factor(ctx: &Context, l: u32, s: u32, f_tol: f64) -> exact::Integral {
     let e = ctx.elements;
     let (li, si) = (l as usize, s as usize);
@@ -289,6 +292,21 @@ pub fn open_factor(ctx: &Context, l: u32, s: u32, f_tol: f64) -> exact::Integral
         normal: e.normal[si],
         centroid: e.centre[si],
     };
+    // A leaf small beside its distance from the source: the factor at its centroid, when
+    // the rule's bound is within the tolerance the quadrature would be held to.
+    let small = far::Small::new(e.corners(l), e.normal[li]);
+    if let Some(bound) =
+        far::centroid_rule_bound(&small, e.corners(l), e.corners(s), e.normal[si], e.area[si])
+    {
+        let value = exact::point_factor(small.centroid, e.normal[li], &receiver);
+        if bound <= f_tol.max(ctx.quadrature * value) {
+            return exact::Integral {
+                value,
+                err: bound,
+                evals: 1,
+            };
+        }
+    }
     let area = e.area[li];
     let i = exact::integrate(
         &mut Emitter::new(e.piece[li]),

@@ -539,6 +539,11 @@ pub fn run(
         // ancestor chains once it is final (or the passes run out).
         let last = (refined == 0 && pass_no > 0) || pass_no + 1 == s.max_passes.max(1);
         let stats = if last {
+            // The links no longer grow: their lists' spare room (up to half of them, from
+            // growth by doubling) is given back before the gather lists are built beside them.
+            for l in &mut links {
+                l.shrink_to_fit();
+            }
             let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
             let extra = expansion(tree, &e, &clinks, vis, &state, eps, s);
             check_gather(&e, &links, extra.as_ref(), s)?;
@@ -1345,14 +1350,15 @@ pub fn gather_lists(
 }
 
 /// Leaf `x`'s compact gather list from its element entries `(source, factor, quadrature
-/// bound, standard error)` and its cluster entries `(source, factor, standard error)`,
+/// bound, standard error)` and its cluster entries `(source, factor, standard error,
+/// bound)`,
 /// with its factor sum and bar and the bar of its reflected irradiance (each entry
 /// weighted by `max over channels of ρ_l B_s`).
 fn finish_list(
     e: &Elements,
     x: usize,
     elements: &[(u32, f64, f64, f64)],
-    cluster: &[(u32, f64, f64)],
+    cluster: &[(u32, f64, f64, f64)],
     rho: &[[f64; 3]],
     state: &State,
 ) -> (solve::List, (f64, Bar), Bar) {
@@ -1365,7 +1371,7 @@ fn finish_list(
     let mut fs = Vec::with_capacity(src.capacity());
     let (mut sum, mut bound, mut var) = (0.0, 0.0, 0.0);
     let (mut gathered, mut w_bound, mut w_var) = (0.0, 0.0, 0.0);
-    let cluster = cluster.iter().map(|&(s, f, se)| (s, f, 0.0, se));
+    let cluster = cluster.iter().map(|&(s, f, se, q)| (s, f, q, se));
     for (s, f, q, se) in elements.iter().copied().chain(cluster) {
         src.push(s);
         fs.push(f);
