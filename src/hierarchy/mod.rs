@@ -902,7 +902,7 @@ const BYTES_PER_INITIAL_PAIR: u64 = (std::mem::size_of::<(u32, u32)>()
 const BYTES_PER_LINK: u64 = 2 * std::mem::size_of::<Link>() as u64;
 
 /// Bytes a leaf's gather list holds per entry: its source and factor ([`solve::List`]).
-const BYTES_PER_ENTRY: u64 = (std::mem::size_of::<u32>() + std::mem::size_of::<f64>()) as u64;
+const BYTES_PER_ENTRY: u64 = (std::mem::size_of::<u32>() + std::mem::size_of::<f32>()) as u64;
 
 /// Bytes a leaf holds besides its entries: its list's two arrays, its factor sum and bars,
 /// and the slot of its list while the lists are built.
@@ -1373,8 +1373,12 @@ fn finish_list(
     let (mut gathered, mut w_bound, mut w_var) = (0.0, 0.0, 0.0);
     let cluster = cluster.iter().map(|&(s, f, se, q)| (s, f, q, se));
     for (s, f, q, se) in elements.iter().copied().chain(cluster) {
+        // Held in `f32` ([`solve::List`]): the rounding joins the entry's bound.
+        let held = f as f32;
+        let q = q + (f - f64::from(held)).abs();
+        let f = f64::from(held);
         src.push(s);
-        fs.push(f);
+        fs.push(held);
         sum += f;
         bound += q;
         var += se * se;
