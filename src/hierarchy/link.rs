@@ -202,17 +202,9 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
         }
     }
     cost.evals += 9;
-    let area = e.area[ri];
-    let integral = exact::integrate(
-        &mut Emitter::new(e.piece[ri]),
-        nr,
-        &receiver,
-        ctx.quadrature,
-        tol.factor.max(1e-15) * area,
-    );
+    let integral = open_factor(ctx, r, s, tol.factor);
     cost.evals += integral.evals;
-    let f_open = (integral.value / area).max(0.0);
-    let q_err = integral.err / area;
+    let (f_open, q_err) = (integral.value, integral.err);
     if f_open <= 0.0 {
         return (None, cost);
     }
