@@ -901,7 +901,12 @@ const BYTES_PER_INITIAL_PAIR: u64 = (std::mem::size_of::<(u32, u32)>()
 /// Bytes a link holds in its receiver's list, with room for the list's growth by doubling.
 const BYTES_PER_LINK: u64 = 2 * std::mem::size_of::<Link>() as u64;
 
-/// Bytes a leaf's gather list holds per entry: its source and factor ([`solve::List`]).
+/// The least `--link-quadrature` at which gather factors are held in `f32` ([`solve::List`]):
+/// 16 times their rounding.
+const NARROW_QUADRATURE: f64 = 1e-6;
+
+/// Bytes a leaf's gather list holds per entry: its source and factor ([`solve::List`]), at
+/// the default settings (`f64` factors take 4 more).
 const BYTES_PER_ENTRY: u64 = (std::mem::size_of::<u32>() + std::mem::size_of::<f32>()) as u64;
 
 /// Bytes a leaf holds besides its entries: its list's two arrays, its factor sum and bars,
@@ -952,8 +957,13 @@ fn check_gather(
     };
     let entries = gather_entries(e, links, extra);
     let leaves = e.leaves().count() as u64;
+    let per_entry = if s.quadrature >= NARROW_QUADRATURE {
+        BYTES_PER_ENTRY
+    } else {
+        BYTES_PER_ENTRY + 4
+    };
     let bytes = entries
-        .saturating_mul(BYTES_PER_ENTRY)
+        .saturating_mul(per_entry)
         .saturating_add(leaves.saturating_mul(BYTES_PER_LIST));
     if held.saturating_add(bytes) <= limit {
         return Ok(());
@@ -1130,6 +1140,8 @@ pub fn gather_lists(
     let (b, spread) = (&state.b, &state.spread);
     let leaves: Vec<u32> = e.leaves().collect();
     let n = (ctx.rays * ctx.rays) as f64;
+    // Factors in `f32` unless the settings ask for more than its rounding ([`solve::List`]).
+    let narrow = ctx.quadrature >= NARROW_QUADRATURE;
     // Per leaf: its list, factor sum with bar, carried bar, and the work spent. Each list
     // is made compact as soon as it is built, so that only the compact lists are held.
     type Built = (solve::List, (f64, Bar), Bar, Cost);
@@ -1144,7 +1156,8 @@ pub fn gather_lists(
                 let mut cost = Cost::default();
                 cluster.clear();
                 if e.buried[li] {
-                    let (list, sum, carried) = finish_list(e, li, &out, cluster, rho, state);
+                    let (list, sum, carried) =
+                        finish_list(e, li, &out, cluster, rho, state, narrow);
                     return (list, sum, carried, cost);
                 }
                 let (eps, k) = rel.weights(b[li]);
@@ -1328,7 +1341,7 @@ pub fn gather_lists(
                 if let Some(x) = extra {
                     x.entries(e, l, cluster, points);
                 }
-                let (list, sum, carried) = finish_list(e, li, &out, cluster, rho, state);
+                let (list, sum, carried) = finish_list(e, li, &out, cluster, rho, state, narrow);
                 (list, sum, carried, cost)
             },
         )
@@ -1361,6 +1374,7 @@ fn finish_list(
     cluster: &[(u32, f64, f64, f64)],
     rho: &[[f64; 3]],
     state: &State,
+    narrow: bool,
 ) -> (solve::List, (f64, Bar), Bar) {
     // The entry's weight in the leaf's radiosity, `max over channels of ρ_l B_s`.
     let w = |s: u32| {
@@ -1368,17 +1382,21 @@ fn finish_list(
         (0..3).map(|c| rho[x][c] * bs[c]).fold(0.0, f64::max)
     };
     let mut src = Vec::with_capacity(elements.len() + cluster.len());
-    let mut fs = Vec::with_capacity(src.capacity());
+    let mut fs: Vec<f64> = Vec::with_capacity(src.capacity());
     let (mut sum, mut bound, mut var) = (0.0, 0.0, 0.0);
     let (mut gathered, mut w_bound, mut w_var) = (0.0, 0.0, 0.0);
     let cluster = cluster.iter().map(|&(s, f, se, q)| (s, f, q, se));
     for (s, f, q, se) in elements.iter().copied().chain(cluster) {
-        // Held in `f32` ([`solve::List`]): the rounding joins the entry's bound.
-        let held = f as f32;
-        let q = q + (f - f64::from(held)).abs();
-        let f = f64::from(held);
+        // Held in `f32` where the settings allow ([`solve::List`]): the rounding joins the
+        // entry's bound.
+        let (f, q) = if narrow {
+            let held = f64::from(f as f32);
+            (held, q + (f - held).abs())
+        } else {
+            (f, q)
+        };
         src.push(s);
-        fs.push(held);
+        fs.push(f);
         sum += f;
         bound += q;
         var += se * se;
@@ -1395,7 +1413,11 @@ fn finish_list(
     }
     let list = solve::List {
         src: src.into_boxed_slice(),
-        f: fs.into_boxed_slice(),
+        f: if narrow {
+            solve::Factors::Narrow(fs.iter().map(|&f| f as f32).collect())
+        } else {
+            solve::Factors::Wide(fs.into_boxed_slice())
+        },
     };
     (
         list,

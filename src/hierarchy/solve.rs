@@ -96,26 +96,45 @@ pub struct Materials<'a> {
 /// One element's gather list: `Σ f[j] B[src[j]]` over its entries, in this order (the
 /// sum's order, so the same bits on any number of threads). `src[j]` is an element, or a
 /// cluster node with [`super::clusters::CLUSTER`] set; `f[j]` the factor to it,
-/// visibility included. Held as two arrays of exact length, 8 bytes an entry: these
-/// lists are most of a large bake's memory (3.7 GB at 10^6 input triangles with factors
-/// in `f64`). Factors are held in `f32`; whoever builds a list adds each factor's
-/// rounding (at most 6e-8 of it, the exact difference) to the entry's bound, so that it is
-/// in the leaves' error bars (it is 16 times below the default `--link-quadrature`).
-#[derive(Clone, Debug, Default)]
+/// visibility included. Held as two arrays of exact length: these lists are most of a
+/// large bake's memory (3.7 GB at 10^6 input triangles with factors in `f64`). Factors are
+/// held in `f32` (8 bytes an entry) where the settings ask no more of a factor than
+/// `--link-quadrature` 1e-6, 16 times the `f32` rounding (6e-8 relative); whoever builds
+/// a list then adds each factor's rounding (the exact difference) to the entry's bound.
+/// Tighter settings keep `f64` (12 bytes an entry).
+#[derive(Clone, Debug)]
 pub struct List {
     /// Sources.
     pub src: Box<[u32]>,
     /// Factors.
-    pub f: Box<[f32]>,
+    pub f: Factors,
+}
+
+/// A list's factors, in the precision the settings need ([`List`]).
+#[derive(Clone, Debug)]
+pub enum Factors {
+    /// Rounded to `f32`.
+    Narrow(Box<[f32]>),
+    /// Full precision.
+    Wide(Box<[f64]>),
+}
+
+impl Default for List {
+    fn default() -> Self {
+        List {
+            src: Box::default(),
+            f: Factors::Wide(Box::default()),
+        }
+    }
 }
 
 impl List {
-    /// A list of `(source, factor)` entries (factors rounded to `f32`).
+    /// A list of `(source, factor)` entries, factors held in full precision.
     pub fn new(entries: impl ExactSizeIterator<Item = (u32, f64)>) -> Self {
-        let (src, f): (Vec<u32>, Vec<f32>) = entries.map(|(s, f)| (s, f as f32)).unzip();
+        let (src, f): (Vec<u32>, Vec<f64>) = entries.unzip();
         List {
             src: src.into_boxed_slice(),
-            f: f.into_boxed_slice(),
+            f: Factors::Wide(f.into_boxed_slice()),
         }
     }
 
@@ -131,10 +150,15 @@ impl List {
 
     /// The entries.
     pub fn iter(&self) -> impl Iterator<Item = (u32, f64)> + '_ {
-        self.src
+        let (narrow, wide): (&[f32], &[f64]) = match &self.f {
+            Factors::Narrow(f) => (f, &[]),
+            Factors::Wide(f) => (&[], f),
+        };
+        let f = narrow
             .iter()
-            .copied()
-            .zip(self.f.iter().map(|&f| f64::from(f)))
+            .map(|&f| f64::from(f))
+            .chain(wide.iter().copied());
+        self.src.iter().copied().zip(f)
     }
 }
 
