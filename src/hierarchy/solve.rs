@@ -194,11 +194,18 @@ impl Gather {
 
 /// Adds `Σ f B[src]` over `list` to `h`, per channel.
 fn gather_into(list: &List, state: &State, h: &mut [f64; 3]) {
-    for (src, f) in list.iter() {
-        let bs = state.source(src);
-        for c in 0..3 {
-            h[c] += f * bs[c];
+    // One loop per precision: this is the solve's inner loop, over every entry each sweep.
+    fn sum(src: &[u32], f: impl Iterator<Item = f64>, state: &State, h: &mut [f64; 3]) {
+        for (&s, f) in src.iter().zip(f) {
+            let bs = state.source(s);
+            for c in 0..3 {
+                h[c] += f * bs[c];
+            }
         }
+    }
+    match &list.f {
+        Factors::Narrow(f) => sum(&list.src, f.iter().map(|&f| f64::from(f)), state, h),
+        Factors::Wide(f) => sum(&list.src, f.iter().copied(), state, h),
     }
 }
 
