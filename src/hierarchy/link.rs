@@ -36,6 +36,7 @@
 //! the thread count, so neither do the links.
 
 use glam::DVec3;
+use smallvec::SmallVec;
 
 use super::blockers::{range, Blockers};
 use super::element::Elements;
@@ -418,17 +419,18 @@ fn visible_fraction_keyed(
         tag,
     );
     let cells = n * n;
-    // Source strata in random order (Fisher–Yates).
-    let mut perm: Vec<u32> = (0..cells as u32).collect();
+    // Source strata in random order (Fisher–Yates). The batches live on the stack up to
+    // 16 rays (the default 4 × 4): the final gather traces tens of millions of them.
+    let mut perm: SmallVec<[u32; 16]> = (0..cells as u32).collect();
     for k in (1..cells).rev() {
         let j = rng.below(k as u32 + 1) as usize;
         perm.swap(k, j);
     }
     let inv = 1.0 / n as f64;
     let whole = e.is_leaf(r);
-    let mut segs: Vec<SegmentRay> = Vec::with_capacity(cells);
-    let mut weights: Vec<f64> = Vec::with_capacity(cells);
-    let mut quadrant: Vec<u8> = Vec::with_capacity(cells);
+    let mut segs: SmallVec<[SegmentRay; 16]> = SmallVec::with_capacity(cells);
+    let mut weights: SmallVec<[f64; 16]> = SmallVec::with_capacity(cells);
+    let mut quadrant: SmallVec<[u8; 16]> = SmallVec::with_capacity(cells);
     for (c, &d) in perm.iter().enumerate() {
         let (a, b) = ((c % n) as f64, (c / n) as f64);
         let mut at = None;
@@ -463,7 +465,7 @@ fn visible_fraction_keyed(
             across: false,
         };
     }
-    let mut free = vec![false; segs.len()];
+    let mut free: SmallVec<[bool; 16]> = smallvec::smallvec![false; segs.len()];
     ctx.vis.segments_visible(&segs, &mut free);
     let (mut num, mut den) = (0.0, 0.0);
     let mut any_blocked = false;

@@ -593,7 +593,7 @@ pub fn run(
                 &m,
                 &mut state,
                 b_ref,
-                s.tolerance,
+                pass_tolerance(s),
                 s.max_iterations,
             )
         };
@@ -618,7 +618,7 @@ pub fn run(
                 pass_no + 1,
                 stats.iterations,
                 stats.change,
-                s.tolerance
+                if last { s.tolerance } else { pass_tolerance(s) }
             ));
         }
         if refined == 0 && pass_no > 0 {
@@ -915,6 +915,22 @@ const BYTES_PER_LIST: u64 = (2 * std::mem::size_of::<solve::List>()
     + 2 * std::mem::size_of::<Bar>()
     + std::mem::size_of::<(f64, Cost)>()) as u64;
 
+/// Share of the link tolerance (`--error`) at which the solves of the passes before the
+/// last stop ([`pass_tolerance`]).
+pub const PASS_SOLVE_SHARE: f64 = 1e-3;
+
+/// The relative change at which a pass before the last stops its solve: the looser of
+/// the solver tolerance (`--tolerance`, at most 1e-7) and [`PASS_SOLVE_SHARE`] ×
+/// `--error`. Those radiosities only decide which links to refine, against a tolerance of
+/// `error × B`; the solve's error is about its last change over `1 - ρ` (a geometric
+/// series), so even at `ρ = 0.99` it stays a tenth of that tolerance. The last pass, whose
+/// radiosities are the result, solves to the solver tolerance, starting from these. On
+/// `room-spheres-12-s6` the passes' solves to 1e-7 took 58 of the bake's 717 s
+/// (docs/PERFORMANCE.md, §9).
+pub fn pass_tolerance(s: &Settings) -> f64 {
+    s.tolerance.max(PASS_SOLVE_SHARE * s.error)
+}
+
 /// The final gather's entries as estimated from the links: one for each link on a leaf's
 /// ancestor chain (its own included) and each piece of a cluster link on its root's chain.
 /// Sources the gather cuts into pieces add entries, and entries with no factor are left
@@ -1177,11 +1193,22 @@ pub fn gather_lists(
                 // The leaf's factor to `src` with its visibility: given, checked (a link found
                 // visible from an ancestor, confirmed by `CHECK_RAYS²` rays from the leaf,
                 // else traced), or traced.
-                let piece = |src: u32, v: Sight, cost: &mut Cost| -> Option<Entry> {
+                //
+                // `known`: the pair's unoccluded factor and its error as its link holds them,
+                // taken where that error is within what the gather would ask of its own rule
+                // (the one-point rule's share of the tolerance, [`link::FAR_SHARE`]).
+                let piece = |src: u32, v: Sight, known: Option<(f64, f64)>, cost: &mut Cost| {
                     let t = f_tol(src);
-                    let open = link::open_factor(ctx, l, src, t);
-                    let (f, q_err) = (open.value, open.err);
-                    cost.evals += open.evals;
+                    let (f, q_err) = match known {
+                        Some((f, err)) if err <= link::FAR_SHARE * t.max(ctx.quadrature * f) => {
+                            (f, err)
+                        }
+                        _ => {
+                            let open = link::open_factor(ctx, l, src, t);
+                            cost.evals += open.evals;
+                            (open.value, open.err)
+                        }
+                    };
                     if f <= 0.0 {
                         return None;
                     }
@@ -1237,7 +1264,7 @@ pub fn gather_lists(
                             }
                         }
                     };
-                    (v > 0.0).then_some(Entry {
+                    let entry: Option<Entry> = (v > 0.0).then_some(Entry {
                         src,
                         f: f * v,
                         v,
@@ -1247,7 +1274,8 @@ pub fn gather_lists(
                         q_bar: q_err * v,
                         traced,
                         open: f,
-                    })
+                    });
+                    entry
                 };
                 // A partly buried leaf traces every entry: its rays from points inside the solid
                 // are blocked, so its traced factors are per whole area, and are divided by its
@@ -1257,7 +1285,7 @@ pub fn gather_lists(
                 let mut stack: Vec<Entry> = if partly {
                     links[li]
                         .iter()
-                        .filter_map(|k| piece(k.src, Sight::Trace, &mut cost))
+                        .filter_map(|k| piece(k.src, Sight::Trace, None, &mut cost))
                         .collect()
                 } else {
                     // The leaf's own links as they are where they were proved unoccluded; traced
@@ -1279,7 +1307,7 @@ pub fn gather_lists(
                                     open: k.open,
                                 })
                             } else {
-                                piece(k.src, Sight::Again, &mut cost)
+                                piece(k.src, Sight::Again, Some((k.open, k.err)), &mut cost)
                             }
                         })
                         .collect()
@@ -1310,7 +1338,7 @@ pub fn gather_lists(
                         } else {
                             Sight::Check(k.vis, bar)
                         };
-                        if let Some(en) = piece(k.src, v, &mut cost) {
+                        if let Some(en) = piece(k.src, v, None, &mut cost) {
                             stack.push(en);
                         }
                     }
@@ -1333,7 +1361,7 @@ pub fn gather_lists(
                         } else {
                             Sight::Given(en.v, en.v_bar)
                         };
-                        if let Some(child) = piece(c, v, &mut cost) {
+                        if let Some(child) = piece(c, v, None, &mut cost) {
                             stack.push(child);
                         }
                     }
