@@ -174,7 +174,17 @@ pub struct Tolerance {
 /// otherwise it is kept as a partly visible link with visible fraction 0, so that the
 /// oracle refines it like a shadow boundary and the leaves below trace their own
 /// visibility.
-pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>, Cost) {
+///
+/// `near` keeps the receiving side of the open factor ([`Near`]): taken from there when it
+/// is `r`'s, else made there, so that a run of links into one receiver maps its Gauss nodes
+/// once.
+pub fn evaluate(
+    ctx: &Context,
+    near: &mut Option<Near>,
+    r: u32,
+    s: u32,
+    tol: Tolerance,
+) -> (Option<Link>, Cost) {
     let e = ctx.elements;
     let (ri, si) = (r as usize, s as usize);
     let (pr, ps) = (e.corners(r), e.corners(s));
@@ -203,7 +213,11 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
         }
     }
     cost.evals += 9;
-    let integral = open_factor(ctx, r, s, tol.factor);
+    let near = match near {
+        Some(n) if n.l == r => n,
+        _ => near.insert(Near::new(e, r)),
+    };
+    let integral = open_factor_near(ctx, near, s, tol.factor);
     cost.evals += integral.evals;
     let (f_open, q_err) = (integral.value, integral.err);
     if f_open <= 0.0 {
@@ -269,6 +283,29 @@ pub fn evaluate(ctx: &Context, r: u32, s: u32, tol: Tolerance) -> (Option<Link>,
 /// Share of a factor's tolerance the one-point rule's bound may take in [`open_factor`].
 pub const FAR_SHARE: f64 = 0.02;
 
+/// What [`open_factor`] needs of its receiving element `l` whatever the source: its
+/// one-point summary and its Gauss nodes (an [`Emitter`] caches them by order). The final
+/// gather keeps one per leaf across the leaf's hundreds of entries, instead of mapping the
+/// same nodes again for each.
+#[derive(Clone, Debug)]
+pub struct Near {
+    l: u32,
+    small: far::Small,
+    emitter: Emitter,
+}
+
+impl Near {
+    /// The receiving side of element `l`.
+    pub fn new(e: &Elements, l: u32) -> Near {
+        let li = l as usize;
+        Near {
+            l,
+            small: far::Small::new(e.corners(l), e.normal[li]),
+            emitter: Emitter::new(e.piece[li]),
+        }
+    }
+}
+
 /// The unoccluded factor `F(l → P_s)` from element `l` to the polygon of element `s`,
 /// `1/A_l ∫_l F(x → P_s) dA_x`, to the relative tolerance [`Context::quadrature`] or the
 /// absolute tolerance `f_tol`: the factor, the quadrature's error estimate of it, and the
@@ -277,7 +314,13 @@ pub const FAR_SHARE: f64 = 0.02;
 /// ([`far::centroid_rule_bound`]) instead, where the bound is within [`FAR_SHARE`] of the
 /// same tolerance.
 pub fn open_factor(ctx: &Context, l: u32, s: u32, f_tol: f64) -> exact::Integral {
+    open_factor_near(ctx, &mut Near::new(ctx.elements, l), s, f_tol)
+}
+
+/// [`open_factor`] from the receiving side `near` (of element `near.l`).
+pub fn open_factor_near(ctx: &Context, near: &mut Near, s: u32, f_tol: f64) -> exact::Integral {
     let e = ctx.elements;
+    let l = near.l;
     let (li, si) = (l as usize, s as usize);
     if range((e.normal[li], e.centre[li]), e.corners(s)).1 <= ctx.tol
         || range((e.normal[si], e.centre[si]), e.corners(l)).1 <= ctx.tol
@@ -294,9 +337,9 @@ pub fn open_factor(ctx: &Context, l: u32, s: u32, f_tol: f64) -> exact::Integral
     // to (the Gauss rule's a-posteriori estimate usually lands far below that tolerance;
     // a bound at the tolerance itself made the Cornell furnace's estimated errors 21 times
     // the actual).
-    let small = far::Small::new(e.corners(l), e.normal[li]);
+    let small = &near.small;
     if let Some(bound) =
-        far::centroid_rule_bound(&small, e.corners(l), e.corners(s), e.normal[si], e.area[si])
+        far::centroid_rule_bound(small, e.corners(l), e.corners(s), e.normal[si], e.area[si])
     {
         let value = exact::point_factor(small.centroid, e.normal[li], &receiver);
         if bound <= FAR_SHARE * f_tol.max(ctx.quadrature * value) {
@@ -309,7 +352,7 @@ pub fn open_factor(ctx: &Context, l: u32, s: u32, f_tol: f64) -> exact::Integral
     }
     let area = e.area[li];
     let i = exact::integrate(
-        &mut Emitter::new(e.piece[li]),
+        &mut near.emitter,
         e.normal[li],
         &receiver,
         ctx.quadrature,

@@ -1057,24 +1057,33 @@ fn link_cap(s: &Settings, now: usize) -> (usize, bool) {
 }
 
 /// Evaluates the candidate links `specs` (with absolute factor tolerances `tols`) in
-/// parallel and appends those that carry light to their receivers' lists, in the order
-/// of `specs`.
+/// parallel and appends those that carry light to their receivers' lists, each list in
+/// the order of `specs`.
 fn evaluate_into(
     ctx: &Context,
     specs: &[(u32, u32)],
     tols: &[Tolerance],
     links: &mut [Vec<Link>],
 ) -> Cost {
-    let out: Vec<(Option<Link>, Cost)> = specs
+    // By receiver (a stable sort, so that each receiver's links keep the order of `specs`),
+    // so that the links into one receiver run together and map its Gauss nodes once.
+    let mut order: Vec<u32> = (0..specs.len() as u32).collect();
+    order.par_sort_by_key(|&k| specs[k as usize].0);
+    let out: Vec<(Option<Link>, Cost)> = order
         .par_iter()
-        .zip(tols)
-        .map(|(&(r, t), &tol)| link::evaluate(ctx, r, t, tol))
+        .map_init(
+            || None,
+            |near, &k| {
+                let (r, t) = specs[k as usize];
+                link::evaluate(ctx, near, r, t, tols[k as usize])
+            },
+        )
         .collect();
     let mut cost = Cost::default();
-    for (&(r, _), (l, c)) in specs.iter().zip(out) {
+    for (&k, (l, c)) in order.iter().zip(out) {
         cost += c;
         if let Some(l) = l {
-            links[r as usize].push(l);
+            links[specs[k as usize].0 as usize].push(l);
         }
     }
     cost
@@ -1177,6 +1186,8 @@ pub fn gather_lists(
                     return (list, sum, carried, cost);
                 }
                 let (eps, k) = rel.weights(b[li]);
+                // The leaf's side of every open factor it asks for (its Gauss nodes mapped once).
+                let near = std::cell::RefCell::new(link::Near::new(e, l));
                 let weight = |src: u32, x: &[[f64; 3]]| {
                     (0..3)
                         .map(|c| k[c] * rho[li][c] * x[src as usize][c])
@@ -1204,7 +1215,7 @@ pub fn gather_lists(
                             (f, err)
                         }
                         _ => {
-                            let open = link::open_factor(ctx, l, src, t);
+                            let open = link::open_factor_near(ctx, &mut near.borrow_mut(), src, t);
                             cost.evals += open.evals;
                             (open.value, open.err)
                         }
