@@ -452,6 +452,67 @@ fn visible_fraction_keyed(
     open: Option<f64>,
     partly: bool,
 ) -> Seen {
+    let d = draw(ctx, r, s, n, tag, open, partly);
+    let mut free: SmallVec<[bool; 16]> = smallvec::smallvec![false; d.segs.len()];
+    ctx.vis.segments_visible(&d.segs, &mut free);
+    judge(&d, &free)
+}
+
+/// [`visible_fraction_n`] (or [`visible_fraction_partly`] when `partly`) from `r` to each
+/// of `sources` (a source and its unoccluded factor), their rays traced as one batch: the
+/// pieces of a split source, `n × n` rays each, make full packets together where each
+/// alone would go ray by ray ([`Visibility::segments_visible`]). The same rays and
+/// fractions as one call each.
+pub fn visible_fractions_n(
+    ctx: &Context,
+    r: u32,
+    sources: &[(u32, f64)],
+    n: usize,
+    partly: bool,
+) -> SmallVec<[Seen; 4]> {
+    let tag = if n == ctx.rays { 0 } else { n as u64 };
+    let drawn: SmallVec<[Drawn; 4]> = sources
+        .iter()
+        .map(|&(s, f)| draw(ctx, r, s, n, tag, Some(f), partly))
+        .collect();
+    let segs: SmallVec<[SegmentRay; 64]> =
+        drawn.iter().flat_map(|d| d.segs.iter().copied()).collect();
+    let mut free: SmallVec<[bool; 64]> = smallvec::smallvec![false; segs.len()];
+    ctx.vis.segments_visible(&segs, &mut free);
+    let mut at = 0;
+    drawn
+        .iter()
+        .map(|d| {
+            let k = d.segs.len();
+            at += k;
+            judge(d, &free[at - k..at])
+        })
+        .collect()
+}
+
+/// The rays of one pair, drawn and not yet traced ([`draw`], [`judge`]).
+struct Drawn {
+    segs: SmallVec<[SegmentRay; 16]>,
+    /// Kernel weight of each segment.
+    weights: SmallVec<[f64; 16]>,
+    /// The receiver quadrant of each segment's stratum.
+    quadrant: SmallVec<[u8; 16]>,
+    /// The kernel's exact mean (0 when not known), for the control variate.
+    mean: f64,
+    cells: usize,
+    partly: bool,
+}
+
+/// The `n × n` rays from `r` to `s` of the stream tagged `tag`, with what [`judge`] needs.
+fn draw(
+    ctx: &Context,
+    r: u32,
+    s: u32,
+    n: usize,
+    tag: u64,
+    open: Option<f64>,
+    partly: bool,
+) -> Drawn {
     let e = ctx.elements;
     let (nr, ns) = (e.normal[r as usize], e.normal[s as usize]);
     let n = n.max(1);
@@ -501,18 +562,31 @@ fn visible_fraction_keyed(
         _ => 0.0,
     };
     let partly = partly && mean > 0.0;
-    if segs.is_empty() && !partly {
+    Drawn {
+        segs,
+        weights,
+        quadrant,
+        mean,
+        cells,
+        partly,
+    }
+}
+
+/// The visible fraction from the rays `d` and their answers `free` (true: not blocked).
+fn judge(d: &Drawn, free: &[bool]) -> Seen {
+    if d.segs.is_empty() && !d.partly {
+        // No ray could be cast (every stratum faced away or was buried): hidden.
         return Seen {
             v: 0.0,
             rays: 0,
             across: false,
         };
     }
-    let mut free: SmallVec<[bool; 16]> = smallvec::smallvec![false; segs.len()];
-    ctx.vis.segments_visible(&segs, &mut free);
+    let (weights, quadrant, mean, cells, partly) =
+        (&d.weights, &d.quadrant, d.mean, d.cells, d.partly);
     let (mut num, mut den) = (0.0, 0.0);
     let mut any_blocked = false;
-    for (w, &f) in weights.iter().zip(&free) {
+    for (w, &f) in weights.iter().zip(free) {
         den += w;
         if f {
             num += w;
@@ -538,7 +612,7 @@ fn visible_fraction_keyed(
     };
     // Per quadrant of the receiver: rays free and cast.
     let mut per = [(0u32, 0u32); 4];
-    for (&q, &f) in quadrant.iter().zip(&free) {
+    for (&q, &f) in quadrant.iter().zip(free) {
         per[q as usize].0 += u32::from(f);
         per[q as usize].1 += 1;
     }
@@ -549,7 +623,7 @@ fn visible_fraction_keyed(
     let (lo, hi) = fractions.fold((1.0f64, 0.0f64), |(lo, hi), x| (lo.min(x), hi.max(x)));
     Seen {
         v,
-        rays: segs.len() as u64,
+        rays: d.segs.len() as u64,
         across: hi - lo >= ACROSS,
     }
 }

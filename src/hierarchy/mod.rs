@@ -48,6 +48,7 @@ pub mod transfer;
 use std::time::Instant;
 
 use rayon::prelude::*;
+use smallvec::SmallVec;
 
 use crate::budget;
 use crate::matrix::Bar;
@@ -1108,10 +1109,10 @@ enum Sight {
     Check(f64, f64),
     /// Traced from the leaf.
     Trace,
-    /// Traced from the leaf with this many rays per side (pieces of a split source).
-    TraceWith(usize),
     /// Traced again from the leaf, with rays independent of its link's.
     Again,
+    /// Traced from the leaf already: (fraction, relative standard error).
+    Seen(f64, f64),
 }
 
 /// One entry of a leaf's gather list while it is built.
@@ -1208,9 +1209,9 @@ pub fn gather_lists(
                 // `known`: the pair's unoccluded factor and its error as its link holds them,
                 // taken where that error is within what the gather would ask of its own rule
                 // (the one-point rule's share of the tolerance, [`link::FAR_SHARE`]).
-                let piece = |src: u32, v: Sight, known: Option<(f64, f64)>, cost: &mut Cost| {
+                let open = |src: u32, known: Option<(f64, f64)>, cost: &mut Cost| {
                     let t = f_tol(src);
-                    let (f, q_err) = match known {
+                    match known {
                         Some((f, err)) if err <= link::FAR_SHARE * t.max(ctx.quadrature * f) => {
                             (f, err)
                         }
@@ -1219,12 +1220,16 @@ pub fn gather_lists(
                             cost.evals += open.evals;
                             (open.value, open.err)
                         }
-                    };
+                    }
+                };
+                // A traced fraction's relative bar: `se(v) / v` on `f v`.
+                let relative = |v: f64, rays: f64| fraction_se(v, rays) / v.max(1e-300);
+                // The entry for `src` of unoccluded factor `f` (with its error `q_err`,
+                // from `open`), its visibility as `v` says.
+                let piece = |src: u32, v: Sight, (f, q_err): (f64, f64), cost: &mut Cost| {
                     if f <= 0.0 {
                         return None;
                     }
-                    // A traced fraction's relative bar: `se(v) / v` on `f v`.
-                    let relative = |v: f64, rays: f64| fraction_se(v, rays) / v.max(1e-300);
                     // A partly buried leaf's rays from inside the solid are blocked as expected
                     // (see `link::visible_fraction_partly`).
                     let trace = |cost: &mut Cost| {
@@ -1238,20 +1243,12 @@ pub fn gather_lists(
                     };
                     let (v, v_bar, traced) = match v {
                         Sight::Given(v, bar) => (v, bar, false),
+                        Sight::Seen(v, bar) => (v, bar, true),
                         Sight::Trace => trace(cost),
                         Sight::Again => {
                             let seen = link::visible_fraction_again(ctx, l, src, Some(f));
                             cost.rays += seen.rays;
                             (seen.v, relative(seen.v, n), true)
-                        }
-                        Sight::TraceWith(m) => {
-                            let seen = if e.partly[li] {
-                                link::visible_fraction_partly(ctx, l, src, m, Some(f))
-                            } else {
-                                link::visible_fraction_n(ctx, l, src, m, Some(f))
-                            };
-                            cost.rays += seen.rays;
-                            (seen.v, relative(seen.v, (m * m) as f64), true)
                         }
                         Sight::Check(v, bar) => {
                             let seen = link::visible_fraction_n(ctx, l, src, CHECK_RAYS, Some(f));
@@ -1296,7 +1293,9 @@ pub fn gather_lists(
                 let mut stack: Vec<Entry> = if partly {
                     links[li]
                         .iter()
-                        .filter_map(|k| piece(k.src, Sight::Trace, None, &mut cost))
+                        .filter_map(|k| {
+                            piece(k.src, Sight::Trace, open(k.src, None, &mut cost), &mut cost)
+                        })
                         .collect()
                 } else {
                     // The leaf's own links as they are where they were proved unoccluded; traced
@@ -1318,7 +1317,12 @@ pub fn gather_lists(
                                     open: k.open,
                                 })
                             } else {
-                                piece(k.src, Sight::Again, Some((k.open, k.err)), &mut cost)
+                                piece(
+                                    k.src,
+                                    Sight::Again,
+                                    open(k.src, Some((k.open, k.err)), &mut cost),
+                                    &mut cost,
+                                )
                             }
                         })
                         .collect()
@@ -1349,7 +1353,7 @@ pub fn gather_lists(
                         } else {
                             Sight::Check(k.vis, bar)
                         };
-                        if let Some(en) = piece(k.src, v, None, &mut cost) {
+                        if let Some(en) = piece(k.src, v, open(k.src, None, &mut cost), &mut cost) {
                             stack.push(en);
                         }
                     }
@@ -1363,17 +1367,35 @@ pub fn gather_lists(
                         out.push((s, f, en.q_bar / exposed, f * en.v_bar));
                         continue;
                     }
-                    for c in e.children(s) {
-                        if ctx.visible[c as usize] <= 0.0 {
-                            continue;
+                    let children = e
+                        .children(s)
+                        .into_iter()
+                        .filter(|&c| ctx.visible[c as usize] > 0.0);
+                    if en.traced {
+                        // Traced from the leaf, `PIECE_RAYS²` rays each, all the pieces' rays
+                        // in one batch (full packets where each alone went ray by ray).
+                        let opened: SmallVec<[(u32, (f64, f64)); 4]> = children
+                            .map(|c| (c, open(c, None, &mut cost)))
+                            .filter(|&(_, (f, _))| f > 0.0)
+                            .collect();
+                        let sources: SmallVec<[(u32, f64); 4]> =
+                            opened.iter().map(|&(c, (f, _))| (c, f)).collect();
+                        let seen =
+                            link::visible_fractions_n(ctx, l, &sources, PIECE_RAYS, e.partly[li]);
+                        let rays = (PIECE_RAYS * PIECE_RAYS) as f64;
+                        for (&(c, fq), seen) in opened.iter().zip(seen) {
+                            cost.rays += seen.rays;
+                            let v = Sight::Seen(seen.v, relative(seen.v, rays));
+                            if let Some(child) = piece(c, v, fq, &mut cost) {
+                                stack.push(child);
+                            }
                         }
-                        let v = if en.traced {
-                            Sight::TraceWith(PIECE_RAYS)
-                        } else {
-                            Sight::Given(en.v, en.v_bar)
-                        };
-                        if let Some(child) = piece(c, v, None, &mut cost) {
-                            stack.push(child);
+                    } else {
+                        for c in children {
+                            let v = Sight::Given(en.v, en.v_bar);
+                            if let Some(child) = piece(c, v, open(c, None, &mut cost), &mut cost) {
+                                stack.push(child);
+                            }
                         }
                     }
                 }
