@@ -1303,9 +1303,9 @@ pub fn piece_factor(
 }
 
 /// Largest bound of a one-point rule, relative to its value, for [`piece_factor`] to take
-/// it: the rules' error then stays three orders below the entry, and below the sampling's
+/// it: the rules' error then stays two orders below the entry, and below the sampling's
 /// standard error of its near-field correction.
-pub const FAR: f64 = 1e-3;
+pub const FAR: f64 = 1e-2;
 
 /// What [`piece_factor`] returns.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
