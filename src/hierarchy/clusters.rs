@@ -647,8 +647,17 @@ impl Refiner<'_> {
         if err(geo) > self.eps {
             return (self.split(r, s, &rs, &ss), 0);
         }
-        let seen = self.transmittance(r, s);
         let n = (self.rays * self.rays) as f64;
+        // The least visibility term any set of rays can give is that of all rays free: a
+        // pair over the tolerance even then splits whatever the rays say, unless all of
+        // them blocked could drop it. Those rays are not cast.
+        let least = geo + fraction_se(1.0, n);
+        if (err(least) > self.eps || least > self.accuracy)
+            && rs.rho * b * f_up * 3.0 / n > self.hide * self.eps
+        {
+            return (self.split(r, s, &rs, &ss), 0);
+        }
+        let seen = self.transmittance(r, s);
         if seen.free == 0 && seen.blocked > 0 {
             if rs.rho * b * f_up * 3.0 / n <= self.hide * self.eps {
                 return (Outcome::Drop, seen.rays);
@@ -698,13 +707,19 @@ impl Refiner<'_> {
     /// its plane (the support function of the box along the root's normal): else nothing
     /// of `b` can receive from `a` (coplanar or facing away).
     pub fn front(&self, a: u32, b: u32) -> bool {
+        self.front_by(a, b, 1e-9)
+    }
+
+    /// [`Refiner::front`] with the margin `rel` times the distances (0 for a test that
+    /// every corner found strictly in front by [`Refiner::facing`] also passes).
+    fn front_by(&self, a: u32, b: u32, rel: f64) -> bool {
         let e = self.elements;
         let (lo, hi) = self.bounds(b);
         let (c, h) = (0.5 * (lo + hi), 0.5 * (hi - lo));
         self.faces(&a).iter().any(|&m| {
             let (n, q) = (e.normal[m as usize], e.centre[m as usize]);
             let reach = n.dot(c - q) + n.abs().dot(h);
-            reach > 1e-9 * ((c - q).length() + h.length())
+            reach > rel * ((c - q).length() + h.length())
         })
     }
 
@@ -717,6 +732,11 @@ impl Refiner<'_> {
         let (rr, sr) = (self.faces(&r), self.faces(&s));
         if rr.len() * sr.len() > FACING_PAIRS {
             return self.front(s, r) && self.front(r, s);
+        }
+        // A corner of `j` strictly in front of root `i`'s plane puts `j`'s node's box in
+        // front of it: a pair the boxes rule out needs no root-by-root look.
+        if !(self.front_by(s, r, 0.0) && self.front_by(r, s, 0.0)) {
+            return false;
         }
         let e = self.elements;
         let sees = |i: u32, j: u32| {
