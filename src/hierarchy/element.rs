@@ -185,49 +185,56 @@ impl Elements {
     }
 
     /// The leaf below `e` that holds the point of `e` at parameters `(u, v)`, and the
-    /// point's parameters in that leaf. Splits are in parameter space: a quad's child `k`
-    /// is its quarter `(u, v) ∈ [0, ½]² , [½, 1] × [0, ½], [½, 1]², [0, ½] × [½, 1]`; a
-    /// triangle's (collapsed map, barycentrics `λ = (1 - u, u (1 - v), u v)`) is the corner
-    /// triangle at `c_k` where `λ_k ≥ ½`, else the middle one.
+    /// point's parameters in that leaf ([`Elements::child_at`], down to a leaf).
     pub fn locate(&self, mut e: u32, mut u: f64, mut v: f64) -> (u32, f64, f64) {
         while !self.is_leaf(e) {
-            let c = self.first_child[e as usize];
-            match self.piece[e as usize] {
-                crate::formfactor::exact::Piece::Quad(_) => {
-                    let (hu, hv) = (u >= 0.5, v >= 0.5);
-                    let k = match (hu, hv) {
-                        (false, false) => 0,
-                        (true, false) => 1,
-                        (true, true) => 2,
-                        (false, true) => 3,
-                    };
-                    u = if hu { 2.0 * u - 1.0 } else { 2.0 * u };
-                    v = if hv { 2.0 * v - 1.0 } else { 2.0 * v };
-                    e = c + k;
-                }
-                crate::formfactor::exact::Piece::Tri(_) => {
-                    let l = [1.0 - u, u * (1.0 - v), u * v];
-                    // The child's barycentrics, by the corner maps of `Piece::split`.
-                    let (k, m) = if l[0] >= 0.5 {
-                        (0, [1.0 - 2.0 * (l[1] + l[2]), 2.0 * l[1], 2.0 * l[2]])
-                    } else if l[1] >= 0.5 {
-                        (1, [2.0 * l[0], 1.0 - 2.0 * (l[0] + l[2]), 2.0 * l[2]])
-                    } else if l[2] >= 0.5 {
-                        (2, [2.0 * l[0], 2.0 * l[1], 1.0 - 2.0 * (l[0] + l[1])])
-                    } else {
-                        (3, [1.0 - 2.0 * l[0], 1.0 - 2.0 * l[1], 1.0 - 2.0 * l[2]])
-                    };
-                    u = (1.0 - m[0]).clamp(0.0, 1.0);
-                    v = if u > 0.0 {
-                        (m[2] / u).clamp(0.0, 1.0)
-                    } else {
-                        0.0
-                    };
-                    e = c + k;
-                }
-            }
+            (e, u, v) = self.child_at(e, u, v);
         }
         (e, u, v)
+    }
+
+    /// The child of the split element `e` that holds the point of `e` at parameters
+    /// `(u, v)`, and the point's parameters in that child. Splits are in parameter space: a
+    /// quad's child `k` is its quarter `(u, v) ∈ [0, ½]² , [½, 1] × [0, ½], [½, 1]², [0, ½]
+    /// × [½, 1]`; a triangle's (collapsed map, barycentrics `λ = (1 - u, u (1 - v), u v)`)
+    /// is the corner triangle at `c_k` where `λ_k ≥ ½`, else the middle one.
+    pub fn child_at(&self, e: u32, u: f64, v: f64) -> (u32, f64, f64) {
+        let c = self.first_child[e as usize];
+        debug_assert_ne!(c, NONE);
+        match self.piece[e as usize] {
+            crate::formfactor::exact::Piece::Quad(_) => {
+                let (hu, hv) = (u >= 0.5, v >= 0.5);
+                let k = match (hu, hv) {
+                    (false, false) => 0,
+                    (true, false) => 1,
+                    (true, true) => 2,
+                    (false, true) => 3,
+                };
+                let u = if hu { 2.0 * u - 1.0 } else { 2.0 * u };
+                let v = if hv { 2.0 * v - 1.0 } else { 2.0 * v };
+                (c + k, u, v)
+            }
+            crate::formfactor::exact::Piece::Tri(_) => {
+                let l = [1.0 - u, u * (1.0 - v), u * v];
+                // The child's barycentrics, by the corner maps of `Piece::split`.
+                let (k, m) = if l[0] >= 0.5 {
+                    (0, [1.0 - 2.0 * (l[1] + l[2]), 2.0 * l[1], 2.0 * l[2]])
+                } else if l[1] >= 0.5 {
+                    (1, [2.0 * l[0], 1.0 - 2.0 * (l[0] + l[2]), 2.0 * l[2]])
+                } else if l[2] >= 0.5 {
+                    (2, [2.0 * l[0], 2.0 * l[1], 1.0 - 2.0 * (l[0] + l[1])])
+                } else {
+                    (3, [1.0 - 2.0 * l[0], 1.0 - 2.0 * l[1], 1.0 - 2.0 * l[2]])
+                };
+                let u = (1.0 - m[0]).clamp(0.0, 1.0);
+                let v = if u > 0.0 {
+                    (m[2] / u).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                (c + k, u, v)
+            }
+        }
     }
 
     /// The point of `e` at parameters `(u, v)` in the unit square, and the area Jacobian.

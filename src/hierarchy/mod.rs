@@ -1118,6 +1118,9 @@ const CHECK_RAYS: usize = 2;
 /// of the whole bake for 0.1% on the worst face average).
 const PIECE_RAYS: usize = 2;
 
+/// [`Entry::traced`] of an entry traced from the leaf whose rays were not kept.
+const NO_RAYS: u32 = u32::MAX;
+
 /// Where a gather entry's visible fraction comes from.
 #[derive(Clone, Copy)]
 enum Sight {
@@ -1145,9 +1148,10 @@ struct Entry {
     v_bar: f64,
     /// Absolute quadrature bar of the unoccluded factor (deterministic).
     q_bar: f64,
-    /// True when the visibility was traced from this leaf (and is traced again for pieces
-    /// of the source).
-    traced: bool,
+    /// Set when the visibility was traced from this leaf (and is traced again for pieces of
+    /// the source): the index of its rays in the leaf's kept rays, or [`NO_RAYS`] where
+    /// they were not kept.
+    traced: Option<u32>,
     /// The unoccluded factor: what decides whether the source is cut into pieces (not the
     /// traced estimate, whose noise would then pick which entries are kept).
     open: f64,
@@ -1192,13 +1196,17 @@ pub fn gather_lists(
     let per_leaf: Vec<Built> = leaves
         .par_iter()
         .map_init(
-            || (Vec::new(), clusters::PointCache::default()),
-            |(cluster, points), &l| {
+            || {
+                let kept: std::cell::RefCell<Vec<link::Traced>> = Default::default();
+                (Vec::new(), clusters::PointCache::default(), kept)
+            },
+            |(cluster, points, kept), &l| {
                 let li = l as usize;
                 // (source, factor, quadrature bound, visibility standard error) entries.
                 let mut out: Vec<(u32, f64, f64, f64)> = Vec::new();
                 let mut cost = Cost::default();
                 cluster.clear();
+                kept.borrow_mut().clear();
                 if e.buried[li] {
                     let (list, sum, carried) =
                         finish_list(e, li, &out, cluster, rho, state, narrow);
@@ -1250,24 +1258,22 @@ pub fn gather_lists(
                     }
                     // A partly buried leaf's rays from inside the solid are blocked as expected
                     // (see `link::visible_fraction_partly`).
-                    let trace = |cost: &mut Cost| {
-                        let seen = if e.partly[li] {
-                            link::visible_fraction_partly(ctx, l, src, ctx.rays, Some(f))
-                        } else {
-                            link::visible_fraction(ctx, l, src, Some(f))
-                        };
+                    // The rays are kept for the pieces of the source ([`link::Traced::pieces`]).
+                    let keep = |t: link::Traced, cost: &mut Cost| {
+                        let seen = t.seen();
                         cost.rays += seen.rays;
-                        (seen.v, relative(seen.v, n), true)
+                        let mut kept = kept.borrow_mut();
+                        kept.push(t);
+                        (seen.v, relative(seen.v, n), Some(kept.len() as u32 - 1))
+                    };
+                    let trace = |cost: &mut Cost| {
+                        keep(link::traced(ctx, l, src, Some(f), e.partly[li]), cost)
                     };
                     let (v, v_bar, traced) = match v {
-                        Sight::Given(v, bar) => (v, bar, false),
-                        Sight::Seen(v, bar) => (v, bar, true),
+                        Sight::Given(v, bar) => (v, bar, None),
+                        Sight::Seen(v, bar) => (v, bar, Some(NO_RAYS)),
                         Sight::Trace => trace(cost),
-                        Sight::Again => {
-                            let seen = link::visible_fraction_again(ctx, l, src, Some(f));
-                            cost.rays += seen.rays;
-                            (seen.v, relative(seen.v, n), true)
-                        }
+                        Sight::Again => keep(link::traced_again(ctx, l, src, Some(f)), cost),
                         Sight::Check(v, bar) => {
                             let seen = link::visible_fraction_n(ctx, l, src, CHECK_RAYS, Some(f));
                             cost.rays += seen.rays;
@@ -1283,7 +1289,7 @@ pub fn gather_lists(
                                 (
                                     v,
                                     bar.max(relative(1.0, (CHECK_RAYS * CHECK_RAYS) as f64)),
-                                    false,
+                                    None,
                                 )
                             } else {
                                 trace(cost)
@@ -1331,7 +1337,7 @@ pub fn gather_lists(
                                     v: k.vis,
                                     v_bar: 0.0,
                                     q_bar: k.err,
-                                    traced: false,
+                                    traced: None,
                                     open: k.open,
                                 })
                             } else {
@@ -1389,19 +1395,42 @@ pub fn gather_lists(
                         .children(s)
                         .into_iter()
                         .filter(|&c| ctx.visible[c as usize] > 0.0);
-                    if en.traced {
-                        // Traced from the leaf, `PIECE_RAYS²` rays each, all the pieces' rays
-                        // in one batch (full packets where each alone went ray by ray).
+                    if let Some(t) = en.traced {
+                        // Traced from the leaf: from the source's own rays that start on each
+                        // piece, where at least `PIECE_RAYS²` do; else `PIECE_RAYS²` rays
+                        // each, all those pieces' rays in one batch (full packets where each
+                        // alone went ray by ray).
                         let opened: SmallVec<[(u32, (f64, f64)); 4]> = children
                             .map(|c| (c, open(c, None, &mut cost)))
                             .filter(|&(_, (f, _))| f > 0.0)
                             .collect();
                         let sources: SmallVec<[(u32, f64); 4]> =
                             opened.iter().map(|&(c, (f, _))| (c, f)).collect();
-                        let seen =
-                            link::visible_fractions_n(ctx, l, &sources, PIECE_RAYS, e.partly[li]);
-                        let rays = (PIECE_RAYS * PIECE_RAYS) as f64;
-                        for (&(c, fq), seen) in opened.iter().zip(seen) {
+                        let least = PIECE_RAYS * PIECE_RAYS;
+                        let mut seen: SmallVec<[Option<(link::Seen, f64)>; 4]> = match t {
+                            NO_RAYS => smallvec::smallvec![None; sources.len()],
+                            t => kept.borrow()[t as usize]
+                                .pieces(ctx, s, &sources, least)
+                                .into_iter()
+                                .map(|p| p.map(|(seen, rays)| (seen, rays as f64)))
+                                .collect(),
+                        };
+                        let fresh: SmallVec<[(u32, f64); 4]> = sources
+                            .iter()
+                            .zip(&seen)
+                            .filter(|(_, p)| p.is_none())
+                            .map(|(&c, _)| c)
+                            .collect();
+                        if !fresh.is_empty() {
+                            let mut traced =
+                                link::visible_fractions_n(ctx, l, &fresh, PIECE_RAYS, e.partly[li])
+                                    .into_iter();
+                            for p in seen.iter_mut().filter(|p| p.is_none()) {
+                                *p = traced.next().map(|x| (x, least as f64));
+                            }
+                        }
+                        for (&(c, fq), p) in opened.iter().zip(seen) {
+                            let Some((seen, rays)) = p else { continue };
                             cost.rays += seen.rays;
                             let v = Sight::Seen(seen.v, relative(seen.v, rays));
                             if let Some(child) = piece(c, v, fq, &mut cost) {
