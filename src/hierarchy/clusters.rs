@@ -893,7 +893,11 @@ pub fn refine(f: &Refiner, start: Vec<(u32, u32)>, links: &mut Links) -> Made {
     let mut frontier = start;
     while !frontier.is_empty() {
         made.pairs += frontier.len();
-        let out: Vec<(Outcome, u64)> = frontier.par_iter().map(|&(r, s)| f.decide(r, s)).collect();
+        let out: Vec<(Outcome, u64)> = frontier
+            .par_iter()
+            .with_max_len(super::PAR_RUN)
+            .map(|&(r, s)| f.decide(r, s))
+            .collect();
         let mut next = Vec::new();
         for (&(r, _), (o, rays)) in frontier.iter().zip(out) {
             made.rays += rays;

@@ -1090,6 +1090,7 @@ fn evaluate_into(
     for chunk in order.chunks(EVALUATE_CHUNK) {
         chunk
             .par_iter()
+            .with_max_len(PAR_RUN)
             .map_init(
                 || None,
                 |near, &k| {
@@ -1117,6 +1118,37 @@ const CHECK_RAYS: usize = 2;
 /// than a link's do (on the Cornell box at `--error 0.01`, 2 instead of 4 halved the rays
 /// of the whole bake for 0.1% on the worst face average).
 const PIECE_RAYS: usize = 2;
+
+/// Most items one thread takes at a time in the long parallel loops (the final gather's
+/// leaves, a chunk of links to evaluate, a cluster frontier). Left to itself, rayon splits
+/// a range only as often as threads steal, so the last run of a loop could be long: the
+/// final gather of `room-spheres-12-s5` ended with 6 s on one core of two.
+pub const PAR_RUN: usize = 4096;
+
+/// A [`clusters::PointCache`] taken from a pool, and given back when dropped.
+struct Pooled<'a> {
+    cache: clusters::PointCache,
+    pool: &'a std::sync::Mutex<Vec<clusters::PointCache>>,
+}
+
+impl<'a> Pooled<'a> {
+    fn take(pool: &'a std::sync::Mutex<Vec<clusters::PointCache>>) -> Pooled<'a> {
+        let cache = pool
+            .lock()
+            .ok()
+            .and_then(|mut p| p.pop())
+            .unwrap_or_default();
+        Pooled { cache, pool }
+    }
+}
+
+impl Drop for Pooled<'_> {
+    fn drop(&mut self) {
+        if let Ok(mut p) = self.pool.lock() {
+            p.push(std::mem::take(&mut self.cache));
+        }
+    }
+}
 
 /// [`Entry::traced`] of an entry traced from the leaf whose rays were not kept.
 const NO_RAYS: u32 = u32::MAX;
@@ -1193,14 +1225,19 @@ pub fn gather_lists(
     // Per leaf: its list, factor sum with bar, carried bar, and the work spent. Each list
     // is made compact as soon as it is built, so that only the compact lists are held.
     type Built = (solve::List, (f64, Bar), Bar, Cost);
+    // Each run of leaves takes a cache of cluster points that earlier runs filled, so that
+    // cutting the leaves into runs ([`PAR_RUN`]) does not redraw the shared upper nodes'.
+    let caches = std::sync::Mutex::new(Vec::new());
     let per_leaf: Vec<Built> = leaves
         .par_iter()
+        .with_max_len(PAR_RUN)
         .map_init(
             || {
                 let kept: std::cell::RefCell<Vec<link::Traced>> = Default::default();
-                (Vec::new(), clusters::PointCache::default(), kept)
+                (Vec::new(), Pooled::take(&caches), kept)
             },
             |(cluster, points, kept), &l| {
+                let points = &mut points.cache;
                 let li = l as usize;
                 // (source, factor, quadrature bound, visibility standard error) entries.
                 let mut out: Vec<(u32, f64, f64, f64)> = Vec::new();
