@@ -1116,7 +1116,9 @@ const CHECK_RAYS: usize = 2;
 /// Rays per side with which a leaf traces its visibility of the pieces of a split source
 /// (`PIECE_RAYS²` each): the pieces' fractions average over the source, so fewer rays
 /// than a link's do (on the Cornell box at `--error 0.01`, 2 instead of 4 halved the rays
-/// of the whole bake for 0.1% on the worst face average).
+/// of the whole bake for 0.1% on the worst face average). It is also the least number of
+/// the leaf's rays to the whole source that must start on a piece for them to judge it
+/// instead ([`link::Traced::pieces`]).
 const PIECE_RAYS: usize = 2;
 
 /// Most items one thread takes at a time in the long parallel loops (the final gather's
