@@ -409,7 +409,7 @@ pub fn visible_fraction(ctx: &Context, r: u32, s: u32, open: Option<f64>) -> See
 /// stream for each `n`).
 pub fn visible_fraction_n(ctx: &Context, r: u32, s: u32, n: usize, open: Option<f64>) -> Seen {
     let tag = if n == ctx.rays { 0 } else { n as u64 };
-    visible_fraction_keyed(ctx, r, s, n, tag, open, false)
+    traced_keyed(ctx, r, s, n, tag, open, false).seen()
 }
 
 /// [`visible_fraction_n`] (the same rays) from a partly buried leaf `r`: its rays from
@@ -418,7 +418,7 @@ pub fn visible_fraction_n(ctx: &Context, r: u32, s: u32, n: usize, open: Option<
 /// control variate's estimate is kept (1 where no ray was cast: no blocked kernel).
 pub fn visible_fraction_partly(ctx: &Context, r: u32, s: u32, n: usize, open: Option<f64>) -> Seen {
     let tag = if n == ctx.rays { 0 } else { n as u64 };
-    visible_fraction_keyed(ctx, r, s, n, tag, open, true)
+    traced_keyed(ctx, r, s, n, tag, open, true).seen()
 }
 
 /// Stream tag of [`visible_fraction_again`].
@@ -428,7 +428,7 @@ const AGAIN: u64 = 1 << 40;
 /// ([`evaluate`]): a fresh estimate for a link whose first estimate took part in deciding
 /// that it is kept.
 pub fn visible_fraction_again(ctx: &Context, r: u32, s: u32, open: Option<f64>) -> Seen {
-    visible_fraction_keyed(ctx, r, s, ctx.rays, AGAIN, open, false)
+    traced_keyed(ctx, r, s, ctx.rays, AGAIN, open, false).seen()
 }
 
 /// The weight of the segment from `x` to `y` (each a point, its surface normal and the area
@@ -442,20 +442,8 @@ pub fn kernel_weight(x: (DVec3, DVec3, f64), y: (DVec3, DVec3, f64)) -> Option<f
     (cx > 0.0 && cy > 0.0 && r2 > 0.0).then(|| cx * cy / (r2 * r2) * x.2 * y.2)
 }
 
-/// [`visible_fraction`] with `n × n` rays from the stream tagged `tag`.
-fn visible_fraction_keyed(
-    ctx: &Context,
-    r: u32,
-    s: u32,
-    n: usize,
-    tag: u64,
-    open: Option<f64>,
-    partly: bool,
-) -> Seen {
-    traced_keyed(ctx, r, s, n, tag, open, partly).seen()
-}
-
-/// The rays of [`visible_fraction_keyed`], traced and kept: what they say of the pair
+/// The `n × n` rays of [`visible_fraction`] from the stream tagged `tag`, traced and
+/// kept: what they say of the pair
 /// ([`Traced::seen`]) and of the pieces of its source ([`Traced::pieces`]).
 fn traced_keyed(
     ctx: &Context,
