@@ -875,6 +875,8 @@ pub struct BenchConfig {
     pub ftz: bool,
     /// Widest vector width the sampling passes may use ([`crate::simd`]).
     pub simd: crate::simd::Width,
+    /// How 16-ray packets go to Embree (None: as the library runs them natively).
+    pub packets: Option<crate::visibility::PacketWidth>,
     /// Seed.
     pub seed: u64,
     /// Patch counts of the scaling run (empty: no scaling run).
@@ -921,7 +923,10 @@ pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
     if cfg.scaling.is_empty() {
         let scene = Scene::load(&cfg.scene)?;
         let patches = PatchSet::build(&scene, Resolution::Patches(cfg.patches))?;
-        let vis = Visibility::new(&patches)?;
+        let mut vis = Visibility::new(&patches)?;
+        if let Some(w) = cfg.packets {
+            vis.set_packet_width(w);
+        }
         let ctx = Context {
             patches: &patches,
             vis: &vis,
@@ -935,9 +940,10 @@ pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
                 .collect()
         });
         print(&format!(
-            "scene `{}`, Embree {}, ftz/daz {}, sampling passes {}",
+            "scene `{}`, Embree {}, packets {}, ftz/daz {}, sampling passes {}",
             cfg.scene,
             vis.embree_version(),
+            vis.packet_width(),
             if cfg.ftz { "on" } else { "off" },
             crate::simd::active()
         ));

@@ -214,6 +214,11 @@ struct BenchArgs {
     /// same).
     #[arg(long, default_value = "avx512", value_parser = parse_width)]
     simd: radiosity::simd::Width,
+    /// How 16-ray packets go to Embree in the ratio table: native (one 16-wide query
+    /// where Embree runs 16-wide packets natively, AVX-512, else two 8-wide), 16 or 8, to
+    /// measure what each gains (results are the same).
+    #[arg(long, default_value = "native", value_parser = parse_packets)]
+    packets: Packets,
     /// Scaling run instead: Cornell box and cube at these patch counts (comma-separated).
     #[arg(long, value_delimiter = ',', num_args = 0.., default_missing_value = "1024,4096,16384,65536,262144")]
     scaling: Option<Vec<usize>>,
@@ -650,6 +655,20 @@ fn parse_memory(s: &str) -> Result<u64> {
 fn parse_width(s: &str) -> Result<radiosity::simd::Width> {
     radiosity::simd::Width::parse(s)
         .with_context(|| format!("--simd `{s}`: expected avx512, avx2 or baseline"))
+}
+
+/// `bench --packets`: a packet width, or None for the library's native one.
+#[derive(Clone, Copy, Debug)]
+struct Packets(Option<radiosity::visibility::PacketWidth>);
+
+fn parse_packets(s: &str) -> Result<Packets> {
+    use radiosity::visibility::PacketWidth;
+    Ok(Packets(match s {
+        "native" => None,
+        "16" => Some(PacketWidth::Sixteen),
+        "8" => Some(PacketWidth::Eight),
+        _ => bail!("--packets `{s}`: expected native, 16 or 8"),
+    }))
 }
 
 /// Parses `--camera`: 6, 9 or 10 comma-separated numbers (see [`BakeArgs::camera`]).
@@ -1213,6 +1232,7 @@ fn dispatch(cli: &Cli, matches: &clap::ArgMatches, cluster: &dyn Cluster) -> Res
                 threads: a.threads,
                 ftz: !a.no_ftz,
                 simd: a.simd,
+                packets: a.packets.0,
                 seed: 1,
                 scaling: a.scaling.clone().unwrap_or_default(),
                 area_max: a.area_max,

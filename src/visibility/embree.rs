@@ -2,8 +2,9 @@
 //!
 //! `embree4-rs` 0.0.16 has no occlusion query and keeps its scene handle private, so this
 //! module talks to the C API directly: a device, one committed triangle scene, occlusion
-//! (`rtcOccluded1`, `rtcOccluded16`) and closest-hit (`rtcIntersect1`) queries, and Embree
-//! errors turned into [`Error::Embree`].
+//! (`rtcOccluded1`, `rtcOccluded16` or two `rtcOccluded8`) and closest-hit (`rtcIntersect1`,
+//! `rtcIntersect16` or two `rtcIntersect8`) queries, 16-ray packets at the width the
+//! library runs natively ([`PacketWidth`]), and Embree errors turned into [`Error::Embree`].
 //!
 //! Embree rules this module relies on (Embree 4 API reference):
 //! - a committed scene may be queried from any number of threads at once (`rtcCommitScene`);
@@ -47,6 +48,97 @@ pub struct EmbreeScene {
     device: sys::RTCDevice,
     scene: sys::RTCScene,
     sink: Box<ErrorSink>,
+    /// Whether 16-ray packets go to Embree as one `rtcOccluded16`/`rtcIntersect16`
+    /// (where the library reports 16-wide packets as native, AVX-512) or as two 8-wide
+    /// queries ([`PacketWidth`]).
+    wide16: bool,
+}
+
+/// How a 16-ray packet is handed to Embree.
+///
+/// Embree traces 16-wide packets natively only with AVX-512; elsewhere (AVX2) it takes
+/// `rtcOccluded16` apart ray by ray, and the packet ran *slower* than single rays, while
+/// two native 8-wide queries ran 1.5 times faster than it (400-patch Cornell box,
+/// `radiosity bench --packets 16` and `--packets 8` on an AVX2 processor:
+/// docs/PERFORMANCE.md, section 1). So the width follows what the library reports as
+/// native (`RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED`) unless the bench asks otherwise.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PacketWidth {
+    /// One `rtcOccluded16` / `rtcIntersect16`.
+    Sixteen,
+    /// Two `rtcOccluded8` / `rtcIntersect8` over its halves.
+    Eight,
+}
+
+impl std::fmt::Display for PacketWidth {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            PacketWidth::Sixteen => "16-wide",
+            PacketWidth::Eight => "2 x 8-wide",
+        })
+    }
+}
+
+/// Fewest rays of a half packet traced as one `rtcOccluded8`; fewer go one
+/// `rtcOccluded1` each. On `room-spheres-12-s4` (hierarchical, clusters), whose links
+/// trace runs of 4 to 16 rays, 6 took 3-4% less CPU than 8, 4 and 1 took 3% and 6% more
+/// (whole-process A/B pairs; the same bits).
+pub const HALF_MIN: usize = 6;
+
+/// The valid mask of an 8-wide packet query, aligned like the packet.
+#[repr(C, align(32))]
+struct Valid8([i32; 8]);
+
+/// `RTCRayHit8` with spare room after it (8 lanes of `instPrimID`), as [`PaddedRayHit`].
+#[repr(C, align(32))]
+struct PaddedRayHit8 {
+    rayhit: sys::RTCRayHit8,
+    _spare: [u32; 16],
+}
+
+/// Traces lanes `[8h, 8h + 8)` of a 16-wide occlusion packet, `n` valid lanes in all, as
+/// one `rtcOccluded8` (or ray by ray when fewer than [`HALF_MIN`] of them are valid), and
+/// writes back their `tfar` (what an occlusion query changes).
+#[inline(always)]
+fn occluded_half(scene: sys::RTCScene, p: &mut sys::RTCRay16, h: usize, n: usize) {
+    let (lo, m) = (8 * h, n.saturating_sub(8 * h).min(8));
+    if m == 0 {
+        return;
+    }
+    if m < HALF_MIN {
+        for k in lo..lo + m {
+            let mut ray = rtc_ray(
+                Vec3::new(p.org_x[k], p.org_y[k], p.org_z[k]),
+                Vec3::new(p.dir_x[k], p.dir_y[k], p.dir_z[k]),
+                p.tnear[k],
+                p.tfar[k],
+            );
+            // SAFETY: the scene is committed; `ray` is a valid RTCRay.
+            unsafe { sys::rtcOccluded1(scene, &mut ray, null_mut()) };
+            p.tfar[k] = ray.tfar;
+        }
+        return;
+    }
+    let mut valid = Valid8([0i32; 8]);
+    valid.0[..m].fill(-1);
+    let mut r = sys::RTCRay8 {
+        org_x: p.org_x[lo..lo + 8].try_into().unwrap(),
+        org_y: p.org_y[lo..lo + 8].try_into().unwrap(),
+        org_z: p.org_z[lo..lo + 8].try_into().unwrap(),
+        tnear: p.tnear[lo..lo + 8].try_into().unwrap(),
+        dir_x: p.dir_x[lo..lo + 8].try_into().unwrap(),
+        dir_y: p.dir_y[lo..lo + 8].try_into().unwrap(),
+        dir_z: p.dir_z[lo..lo + 8].try_into().unwrap(),
+        time: [0.0; 8],
+        tfar: p.tfar[lo..lo + 8].try_into().unwrap(),
+        mask: [u32::MAX; 8],
+        id: [0; 8],
+        flags: [0; 8],
+    };
+    // SAFETY: a committed scene; `RTCRay8` and `Valid8` are 32-byte aligned as
+    // rtcOccluded8 requires; lanes with valid = 0 are ignored.
+    unsafe { sys::rtcOccluded8(valid.0.as_ptr(), scene, &mut r, null_mut()) };
+    p.tfar[lo..lo + 8].copy_from_slice(&r.tfar);
 }
 
 // SAFETY: Embree documents committed scenes as safe to query concurrently, and the device
@@ -186,10 +278,15 @@ impl EmbreeScene {
         };
         // SAFETY: a valid device; a null scene is reported below.
         let scene = unsafe { sys::rtcNewScene(device) };
+        // SAFETY: a valid device; NATIVE_RAY16_SUPPORTED is a read-only property.
+        let native16 = unsafe {
+            sys::rtcGetDeviceProperty(device, sys::RTCDeviceProperty::NATIVE_RAY16_SUPPORTED)
+        } != 0;
         let mut this = EmbreeScene {
             device,
             scene,
             sink,
+            wide16: native16,
         };
         if scene.is_null() {
             return Err(this.error("rtcNewScene"));
@@ -330,9 +427,14 @@ impl EmbreeScene {
         valid.0[..n].fill(-1);
         load_lanes(packet, org, dir);
         packet.tfar[..n].fill(tfar);
-        // SAFETY: as in `occluded16_with`: committed scene, 64-byte aligned packet and
-        // mask, lanes with valid = 0 ignored.
-        unsafe { sys::rtcOccluded16(valid.0.as_ptr(), self.scene, packet, null_mut()) };
+        if self.wide16 {
+            // SAFETY: as in `occluded16_with`: committed scene, 64-byte aligned packet and
+            // mask, lanes with valid = 0 ignored.
+            unsafe { sys::rtcOccluded16(valid.0.as_ptr(), self.scene, packet, null_mut()) };
+        } else {
+            occluded_half(self.scene, packet, 0, n);
+            occluded_half(self.scene, packet, 1, n);
+        }
         // Embree sets tfar to -inf on an occluded ray and leaves the others' (`tfar > 0`).
         for (o, tfar) in out.iter_mut().zip(packet.tfar).take(n) {
             *o = tfar >= 0.0;
@@ -374,7 +476,12 @@ impl EmbreeScene {
         // as rtcOccluded16 requires (bindgen keeps RTC_ALIGN(64) on RTCRay16, checked by the
         // `packet_types_are_64_byte_aligned` test; `Valid16` is aligned by hand); lanes with
         // valid = 0 are ignored.
-        unsafe { sys::rtcOccluded16(valid.0.as_ptr(), self.scene, &mut packet, null_mut()) };
+        if self.wide16 {
+            unsafe { sys::rtcOccluded16(valid.0.as_ptr(), self.scene, &mut packet, null_mut()) };
+        } else {
+            occluded_half(self.scene, &mut packet, 0, n);
+            occluded_half(self.scene, &mut packet, 1, n);
+        }
         for (o, tfar) in out.iter_mut().zip(packet.tfar).take(n) {
             *o = tfar < 0.0;
         }
@@ -408,7 +515,12 @@ impl EmbreeScene {
         // SAFETY: the scene is committed; the ray-hit packet and the mask are 64-byte
         // aligned (`PaddedRayHit16`, `Valid16`), with room after the hit for the widest
         // RTCHit16 layout; lanes with valid = 0 are ignored.
-        unsafe { sys::rtcIntersect16(valid.0.as_ptr(), self.scene, rh, null_mut()) };
+        if self.wide16 {
+            unsafe { sys::rtcIntersect16(valid.0.as_ptr(), self.scene, rh, null_mut()) };
+        } else {
+            self.intersect_half(rh, 0, n);
+            self.intersect_half(rh, 1, n);
+        }
         let (hit, r) = (&rh.hit, &rh.ray);
         for k in 0..n {
             out[k] = if hit.geomID[k] != sys::RTC_INVALID_GEOMETRY_ID {
@@ -420,6 +532,68 @@ impl EmbreeScene {
             let d = hit.Ng_x[k] * r.dir_x[k] + hit.Ng_y[k] * r.dir_y[k] + hit.Ng_z[k] * r.dir_z[k];
             against[k] = d * NG_SIGN < 0.0;
         }
+    }
+
+    /// How 16-ray packets are traced on this machine.
+    pub fn packet_width(&self) -> PacketWidth {
+        if self.wide16 {
+            PacketWidth::Sixteen
+        } else {
+            PacketWidth::Eight
+        }
+    }
+
+    /// Traces 16-ray packets as `w` from now on (the answers are the same).
+    pub fn set_packet_width(&mut self, w: PacketWidth) {
+        self.wide16 = w == PacketWidth::Sixteen;
+    }
+
+    /// Traces lanes `[8h, 8h + 8)` of a 16-wide closest-hit packet as one
+    /// `rtcIntersect8` and writes back the hit fields the caller reads.
+    #[inline(always)]
+    fn intersect_half(&self, rh: &mut sys::RTCRayHit16, h: usize, n: usize) {
+        let (lo, m) = (8 * h, n.saturating_sub(8 * h).min(8));
+        if m == 0 {
+            return;
+        }
+        let mut valid = Valid8([0i32; 8]);
+        valid.0[..m].fill(-1);
+        let p = &rh.ray;
+        let mut q = PaddedRayHit8 {
+            rayhit: sys::RTCRayHit8 {
+                ray: sys::RTCRay8 {
+                    org_x: p.org_x[lo..lo + 8].try_into().unwrap(),
+                    org_y: p.org_y[lo..lo + 8].try_into().unwrap(),
+                    org_z: p.org_z[lo..lo + 8].try_into().unwrap(),
+                    tnear: p.tnear[lo..lo + 8].try_into().unwrap(),
+                    dir_x: p.dir_x[lo..lo + 8].try_into().unwrap(),
+                    dir_y: p.dir_y[lo..lo + 8].try_into().unwrap(),
+                    dir_z: p.dir_z[lo..lo + 8].try_into().unwrap(),
+                    time: [0.0; 8],
+                    tfar: p.tfar[lo..lo + 8].try_into().unwrap(),
+                    mask: [u32::MAX; 8],
+                    id: [0; 8],
+                    flags: [0; 8],
+                },
+                hit: sys::RTCHit8 {
+                    geomID: [sys::RTC_INVALID_GEOMETRY_ID; 8],
+                    ..Default::default()
+                },
+            },
+            _spare: [u32::MAX; 16],
+        };
+        // SAFETY: a committed scene; the ray-hit packet and the mask are 32-byte aligned
+        // (`PaddedRayHit8`, `Valid8`), with room after the hit for the widest RTCHit8
+        // layout; lanes with valid = 0 are ignored.
+        unsafe { sys::rtcIntersect8(valid.0.as_ptr(), self.scene, &mut q.rayhit, null_mut()) };
+        let (hit, ray) = (&q.rayhit.hit, &q.rayhit.ray);
+        let o = &mut rh.hit;
+        o.geomID[lo..lo + 8].copy_from_slice(&hit.geomID);
+        o.primID[lo..lo + 8].copy_from_slice(&hit.primID);
+        o.Ng_x[lo..lo + 8].copy_from_slice(&hit.Ng_x);
+        o.Ng_y[lo..lo + 8].copy_from_slice(&hit.Ng_y);
+        o.Ng_z[lo..lo + 8].copy_from_slice(&hit.Ng_z);
+        rh.ray.tfar[lo..lo + 8].copy_from_slice(&ray.tfar);
     }
 
     /// The closest hit along the ray in `[tnear, tfar]`, if any.
@@ -523,10 +697,29 @@ mod tests {
                 (Vec3::new(x, 0.5, 1.0), Vec3::new(0.0, 0.0, -2.0), 0.0, 1.0)
             })
             .collect();
-        let mut out = [false; 16];
-        scene.occluded16(&rays, &mut out);
-        for (k, r) in rays.iter().enumerate() {
-            assert_eq!(out[k], scene.occluded1(r.0, r.1, r.2, r.3), "ray {k}");
+        let mut scene = scene;
+        for w in [PacketWidth::Sixteen, PacketWidth::Eight] {
+            scene.set_packet_width(w);
+            // 13 rays (a full half and 5 rays, traced one by one where halves are 8-wide),
+            // 7 (one partly filled 8-wide half) and 5.
+            for n in [13, 7, 5] {
+                let mut out = [false; 16];
+                scene.occluded16(&rays[..n], &mut out);
+                let (mut free, mut p) = ([true; 16], SegmentPacket16::new());
+                let col = |f: fn(&(Vec3, Vec3, f32, f32)) -> f32| {
+                    rays[..n].iter().map(f).collect::<Vec<f32>>()
+                };
+                let (ox, oy, oz) = (col(|r| r.0.x), col(|r| r.0.y), col(|r| r.0.z));
+                let (dx, dy, dz) = (col(|r| r.1.x), col(|r| r.1.y), col(|r| r.1.z));
+                scene.free16_soa(&mut p, [&ox, &oy, &oz], [&dx, &dy, &dz], 1.0, &mut free);
+                for (k, r) in rays[..n].iter().enumerate() {
+                    let single = scene.occluded1(r.0, r.1, r.2, r.3);
+                    assert_eq!(out[k], single, "{w}, n = {n}, ray {k}");
+                    assert_eq!(free[k], !single, "{w}, n = {n}, ray {k}");
+                }
+                // Some rays of each half cross the square, some miss it.
+                assert!(out[..n.min(8)].contains(&true) && out[..n.min(8)].contains(&false));
+            }
         }
         assert!(flush_denormals() || cfg!(not(target_arch = "x86_64")));
     }
@@ -545,8 +738,12 @@ mod tests {
             Vec3::new(0.0, 1.0, -1.0),
         ];
         // Triangle 0 (z = 0): normal +z. Triangle 1 (z = -1): wound clockwise, normal -z.
-        let scene = EmbreeScene::new(&v, &[[0, 1, 2], [3, 5, 4]]).unwrap();
-        for n in [1, 5, 16] {
+        let mut scene = EmbreeScene::new(&v, &[[0, 1, 2], [3, 5, 4]]).unwrap();
+        for (w, n) in [PacketWidth::Sixteen, PacketWidth::Eight]
+            .into_iter()
+            .flat_map(|w| [1, 5, 12, 16].map(|n| (w, n)))
+        {
+            scene.set_packet_width(w);
             let org: Vec<[f32; 3]> = (0..n)
                 .map(|k| {
                     [
@@ -575,10 +772,10 @@ mod tests {
                 let o = Vec3::from(org[k]);
                 let d = Vec3::from(dir[k]);
                 let single = scene.intersect1(o, d, 0.0, f32::INFINITY).map(|h| h.prim);
-                assert_eq!(Some(out[k]), single, "n = {n}, ray {k}");
+                assert_eq!(Some(out[k]), single, "{w}, n = {n}, ray {k}");
                 // Down from z = 1: hits triangle 0 from the side of its normal (+z).
                 // Up from z = -2: hits triangle 1 from the side of its normal (-z).
-                assert!(against[k], "n = {n}, ray {k}");
+                assert!(against[k], "{w}, n = {n}, ray {k}");
             }
         }
         // And from the back: up from z = -0.5 into triangle 0, along its normal.

@@ -32,6 +32,7 @@ use crate::error::Result;
 use crate::mesh::PatchSet;
 
 pub use embree::flush_denormals;
+pub use embree::PacketWidth;
 pub(crate) use embree::{EmbreeScene, HitPacket16, SegmentPacket16};
 
 /// Relative offset of ray ends from their surfaces, as a fraction of the scene diagonal.
@@ -220,8 +221,8 @@ pub struct Visibility {
     query_nanos: AtomicU64,
 }
 
-/// Fewest segment rays traced as one `rtcOccluded16` packet; shorter runs go one
-/// `rtcOccluded1` each. A coherent full packet ran at 1.7 to 2.2 times the single-ray rate
+/// Fewest segment rays traced as one `rtcOccluded16` packet where 16-wide packets are
+/// native (AVX-512); shorter runs go one `rtcOccluded1` each. A coherent full packet ran at 1.7 to 2.2 times the single-ray rate
 /// (`docs/PERFORMANCE.md`, section 2), so a packet costs about 8 single rays: the
 /// semi-analytic estimator's batches of 4 rays per node (before it traced a pair's nodes
 /// as one batch) ran its stage at about 0.23 of the raw loop as packets against 0.25-0.26
@@ -315,7 +316,18 @@ impl Visibility {
         &self.scene
     }
 
-    /// The Embree version the library reports, as `major.minor.patch`.
+    /// How 16-ray packets are traced ([`PacketWidth`]).
+    pub fn packet_width(&self) -> PacketWidth {
+        self.scene.packet_width()
+    }
+
+    /// Traces 16-ray packets as `w` from now on, whatever the library runs natively (the
+    /// bench's `--packets`; the answers are the same).
+    pub fn set_packet_width(&mut self, w: PacketWidth) {
+        self.scene.set_packet_width(w);
+    }
+
+    /// The Embree version, as `major.minor.patch`.
     pub fn embree_version(&self) -> String {
         self.scene.version()
     }
@@ -347,26 +359,39 @@ impl Visibility {
 
     /// Visibility of a batch of segment rays (as made by [`Visibility::segment_ray`]):
     /// `out[k]` is true when segment k is free. Whole chunks of 16 go through Embree's
-    /// `rtcOccluded16` packets, the rest one `rtcOccluded1` each: the rays of one pair of
-    /// patches are coherent, and on the 400-patch Cornell box packets of them ran 1.7 to
-    /// 2.2 times the single-ray rate (`docs/PERFORMANCE.md`, section 2).
+    /// packets ([`PacketWidth`]), the rest one `rtcOccluded1` each (or, in 8-wide halves,
+    /// as each half decides): the rays of one pair of patches are coherent, and on the
+    /// 400-patch Cornell box packets of them ran 1.7 to 2.2 times the single-ray rate
+    /// (`docs/PERFORMANCE.md`, section 2).
     #[inline]
     pub fn segments_visible(&self, segs: &[SegmentRay], out: &mut [bool]) {
-        let n = segs.len() / 16 * 16;
-        for (c, o) in segs[..n]
-            .chunks_exact(16)
-            .zip(out[..n].chunks_exact_mut(16))
-        {
-            self.segments_visible16(c, o);
+        let min = self.short_packet_min(16);
+        for (c, o) in segs.chunks(16).zip(out.chunks_mut(16)) {
+            if c.len() >= min {
+                self.segments_visible16(c, o);
+            } else {
+                for (o, s) in o.iter_mut().zip(c) {
+                    *o = !self.scene.occluded1(s.0, s.1, 0.0, s.2);
+                }
+            }
         }
-        for (o, s) in out[n..].iter_mut().zip(&segs[n..]) {
-            *o = !self.scene.occluded1(s.0, s.1, 0.0, s.2);
+    }
+
+    /// Fewest rays of a run shorter than 16 that go to Embree as a packet: `wide` where
+    /// 16-wide packets are native; every run where they go as two 8-wide halves, each
+    /// half deciding for itself ([`embree::HALF_MIN`]).
+    #[inline]
+    fn short_packet_min(&self, wide: usize) -> usize {
+        match self.scene.packet_width() {
+            PacketWidth::Sixteen => wide,
+            PacketWidth::Eight => 1,
         }
     }
 
     /// [`Visibility::segments_visible`] of segment rays given as structure of arrays: one
-    /// `rtcOccluded16` per 16 rays, each filled by copying 16-float runs; a last run of
-    /// fewer than [`PACKET_MIN`] rays goes one `rtcOccluded1` per ray.
+    /// packet per 16 rays ([`PacketWidth`]), each filled by copying 16-float runs; where
+    /// packets are 16-wide, a last run of fewer than [`PACKET_MIN`] rays goes one
+    /// `rtcOccluded1` per ray.
     #[inline]
     pub fn segments_visible_soa(&self, segs: &Segments, out: &mut [bool]) {
         let n = segs.len();
@@ -377,7 +402,7 @@ impl Visibility {
             || {
                 for ((org, dir), out) in segs.rays.packets16().zip(out[..n].chunks_mut(16)) {
                     let len = org[0].len();
-                    if len >= PACKET_MIN {
+                    if len >= self.short_packet_min(PACKET_MIN) {
                         self.scene.free16_soa(&mut packet, org, dir, segs.tfar, out);
                     } else {
                         for (k, v) in out.iter_mut().enumerate().take(len) {
