@@ -297,6 +297,40 @@ enum Switch {
     Off,
 }
 
+/// `--clusters`: on, off, or as the scene's size asks.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum ClusterArg {
+    /// Always.
+    On,
+    /// Never (a link between every pair of faces to start).
+    Off,
+    /// For scenes of more than 4096 root patches, or where their pairs would not fit in
+    /// memory.
+    Auto,
+}
+
+impl From<radiosity::hierarchy::Clustering> for ClusterArg {
+    fn from(c: radiosity::hierarchy::Clustering) -> Self {
+        use radiosity::hierarchy::Clustering;
+        match c {
+            Clustering::On => ClusterArg::On,
+            Clustering::Off => ClusterArg::Off,
+            Clustering::Auto => ClusterArg::Auto,
+        }
+    }
+}
+
+impl From<ClusterArg> for radiosity::hierarchy::Clustering {
+    fn from(c: ClusterArg) -> Self {
+        use radiosity::hierarchy::Clustering;
+        match c {
+            ClusterArg::On => Clustering::On,
+            ClusterArg::Off => Clustering::Off,
+            ClusterArg::Auto => Clustering::Auto,
+        }
+    }
+}
+
 #[derive(Args, Debug)]
 struct HierarchyArgs {
     /// Radiosity method.
@@ -322,9 +356,11 @@ struct HierarchyArgs {
     #[arg(long, default_value_t = 4)]
     link_rays: usize,
     /// Hierarchical: start from a cluster tree over the input faces (links between groups
-    /// of faces far enough apart) instead of a link between every pair of them.
-    #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::CLUSTERS { Switch::On } else { Switch::Off })]
-    clusters: Switch,
+    /// of faces far enough apart) instead of a link between every pair of them; auto:
+    /// for scenes of more than 4096 root patches, or where their pairs would not fit in
+    /// memory.
+    #[arg(long, value_enum, default_value_t = ClusterArg::from(radiosity::hierarchy::CLUSTERS))]
+    clusters: ClusterArg,
     /// Hierarchical with clusters: largest relative error bound of a cluster link (inf:
     /// the link tolerance alone decides; 1 to 3: fewer savings, closer to unclustered).
     #[arg(long, default_value_t = f64::INFINITY)]
@@ -802,7 +838,7 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
                 quadrature: args.hier.link_quadrature,
                 accuracy: args.hier.link_accuracy,
                 seed: args.est.seed,
-                clusters: args.hier.clusters == Switch::On,
+                clusters: args.hier.clusters.into(),
                 cluster_accuracy: args.hier.cluster_accuracy,
                 split_receivers: args.hier.split_receivers == Switch::On,
                 descend: args.hier.descend,

@@ -1211,8 +1211,15 @@ fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
     if h.clusters > 0 {
         let _ = writeln!(
             o,
-            "  clusters: {} over the roots, {} cluster links at the end, {} node pairs examined",
-            h.clusters, h.cluster_links, h.cluster_pairs
+            "  clusters: {} over the roots{}, {} cluster links at the end, {} node pairs examined",
+            h.clusters,
+            if h.auto_clusters {
+                " (chosen by --clusters auto for this many roots)"
+            } else {
+                ""
+            },
+            h.cluster_links,
+            h.cluster_pairs
         );
     }
     for (k, p) in h.passes.iter().enumerate() {

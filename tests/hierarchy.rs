@@ -1,7 +1,7 @@
 //! Hierarchical radiosity against closed forms: closure and the furnace, the notes' shelf,
 //! crack-free output, determinism, and refinement where visibility changes.
 
-use radiosity::hierarchy::{self, Settings, Solution};
+use radiosity::hierarchy::{self, Clustering, Settings, Solution};
 use radiosity::mesh::{PatchSet, Resolution};
 use radiosity::scene::Scene;
 use radiosity::visibility::Visibility;
@@ -44,8 +44,9 @@ fn closed_cube_links_sum_to_one_and_the_furnace_holds() {
     }
 }
 
-/// Memory: an unclustered hierarchy whose links between every pair of roots would not fit
-/// is refused before any link is evaluated, naming what would fit; within a small limit
+/// Memory: an unclustered hierarchy (`--clusters off`) whose links between every pair of
+/// roots would not fit is refused before any link is evaluated, naming what would fit
+/// (`--clusters auto`, the default, clusters it instead); within a small limit
 /// the refinement stops at the links that fit, with a note, and still solves.
 #[test]
 fn the_memory_limit_refuses_or_caps_the_links() {
@@ -54,6 +55,7 @@ fn the_memory_limit_refuses_or_caps_the_links() {
     let vis = Visibility::new(&patches).expect("bvh");
     let s = Settings {
         max_memory: Some(64 << 20),
+        clusters: Clustering::Off,
         ..Settings::default()
     };
     let e = hierarchy::run(&patches, &vis, &s, &|_| {})
@@ -195,7 +197,7 @@ fn shelf_table_on_the_hierarchy() {
 /// without clusters.
 #[test]
 fn same_bits_on_any_thread_count() {
-    for clusters in [false, true] {
+    for clusters in [Clustering::Off, Clustering::On] {
         let s = Settings {
             error: 0.04,
             clusters,
@@ -209,14 +211,14 @@ fn same_bits_on_any_thread_count() {
             pool.install(|| solve("cornell", Resolution::DiagonalFraction(0.5), &s).1)
         };
         let (a, b) = (run(1), run(2));
-        assert_eq!(a.elements.len(), b.elements.len(), "clusters {clusters}");
-        assert_eq!(a.report.links, b.report.links, "clusters {clusters}");
-        assert_eq!(a.report.rays, b.report.rays, "clusters {clusters}");
+        assert_eq!(a.elements.len(), b.elements.len(), "clusters {clusters:?}");
+        assert_eq!(a.report.links, b.report.links, "clusters {clusters:?}");
+        assert_eq!(a.report.rays, b.report.rays, "clusters {clusters:?}");
         for (x, y) in a.state.b.iter().zip(&b.state.b) {
             assert_eq!(
                 x.map(f64::to_bits),
                 y.map(f64::to_bits),
-                "clusters {clusters}"
+                "clusters {clusters:?}"
             );
         }
     }
@@ -339,11 +341,11 @@ fn clustered_and_unclustered_bakes_agree() {
         ..Default::default()
     };
     let on = Settings {
-        clusters: true,
+        clusters: Clustering::On,
         ..base.clone()
     };
     let off = Settings {
-        clusters: false,
+        clusters: Clustering::Off,
         ..base
     };
     let res = Resolution::DiagonalFraction(0.25);
@@ -436,7 +438,7 @@ fn cube_furnace_with_clusters(accuracy: f64) -> (hierarchy::Report, f64, f64, f6
     let s = Settings {
         error: 0.02,
         min_area: Some(1.0 / 1024.0),
-        clusters: true,
+        clusters: Clustering::On,
         cluster_accuracy: accuracy,
         ..Settings::default()
     };
@@ -591,7 +593,7 @@ fn clustered_and_unclustered_at_ten_thousand_triangles() {
         "room-spheres-8",
         res,
         &Settings {
-            clusters: true,
+            clusters: Clustering::On,
             ..base.clone()
         },
     );
@@ -753,7 +755,7 @@ fn shadows_across_receivers_split_them() {
     .expect("reference");
     let s = Settings {
         error: 0.05,
-        clusters: true,
+        clusters: Clustering::On,
         split_shadows: true,
         ..Settings::default()
     };

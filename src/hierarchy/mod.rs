@@ -78,8 +78,45 @@ pub const SPLIT_SHADOWS: bool = false;
 /// Default [`Settings::descend`].
 pub const DESCEND: f64 = 0.03;
 
+/// Whether the hierarchy starts from a cluster tree over the roots ([`Settings::clusters`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Clustering {
+    /// A link between every pair of roots (refused when their evaluation does not fit).
+    Off,
+    /// From the self-link of a cluster tree over the roots.
+    On,
+    /// Clusters for scenes of more than [`AUTO_CLUSTER_ROOTS`] roots, or where the links
+    /// between every pair of roots would not fit the memory limit; else none.
+    Auto,
+}
+
+/// Roots above which [`Clustering::Auto`] clusters. The candidate links between every
+/// pair of roots grow as their square: `room-spheres-2` (2,603 roots) baked in 106.5 s of
+/// user CPU without clusters and 59.0 s with them (`--method hierarchical`, this 2-core
+/// host), `room-spheres-8` (10,240 faces) in 564 s and 64 s (docs/HIERARCHY.md,
+/// Clustering). Up to this many, the unclustered start is kept: it is the one checked
+/// against closed forms to 1e-6 and against the path tracer on the Cornell box and the
+/// room with a sphere (2,091 roots), and costs at most about twice the clustered one.
+pub const AUTO_CLUSTER_ROOTS: usize = 4096;
+
+impl Clustering {
+    /// Whether a scene of `roots` roots is clustered under the memory limit `max_memory`
+    /// (or the available memory): [`Clustering::Auto`] clusters above
+    /// [`AUTO_CLUSTER_ROOTS`] roots and where the links between every pair of roots would
+    /// not fit (the check that refuses them with [`Clustering::Off`]).
+    pub fn resolve(self, roots: usize, max_memory: Option<u64>) -> bool {
+        match self {
+            Clustering::Off => false,
+            Clustering::On => true,
+            Clustering::Auto => {
+                roots > AUTO_CLUSTER_ROOTS || check_initial_pairs(roots, max_memory).is_err()
+            }
+        }
+    }
+}
+
 /// Default [`Settings::clusters`].
-pub const CLUSTERS: bool = false;
+pub const CLUSTERS: Clustering = Clustering::Auto;
 
 /// Whether cluster links split receiving elements by default ([`Settings::split_receivers`]).
 pub const SPLIT_RECEIVERS: bool = false;
@@ -127,8 +164,9 @@ pub struct Settings {
     /// Seed of the random streams.
     pub seed: u64,
     /// Start from the self-link of a cluster tree over the roots ([`clusters`]) instead of
-    /// a link between every pair of roots.
-    pub clusters: bool,
+    /// a link between every pair of roots: always, never, or as the scene's size asks
+    /// ([`Clustering`]).
+    pub clusters: Clustering,
     /// Largest relative error bound of a cluster link (the geometric and visibility terms
     /// of [`clusters`], before the transfer they scale): infinite to let the link
     /// tolerance alone decide; 1 to 3 trade links for agreement with unclustered bakes
@@ -298,6 +336,8 @@ pub struct Report {
     pub initial_links: usize,
     /// Clusters in the tree over the roots (0 without clustering).
     pub clusters: usize,
+    /// True when [`Clustering::Auto`] chose clusters for this scene.
+    pub auto_clusters: bool,
     /// Cluster links at the end.
     pub cluster_links: usize,
     /// Node pairs the cluster refinement examined.
@@ -422,7 +462,9 @@ pub fn run(
         .iter()
         .map(|r| r.iter().copied().fold(0.0, f64::max))
         .collect();
-    let tree = (s.clusters && e.roots >= 2).then(|| Tree::build(&e, &visible, &rho_max));
+    let clustered = s.clusters.resolve(e.roots, s.max_memory);
+    report.auto_clusters = clustered && s.clusters == Clustering::Auto;
+    let tree = (clustered && e.roots >= 2).then(|| Tree::build(&e, &visible, &rho_max));
     let tree = tree.as_ref();
     let mut clinks = tree.map_or_else(Links::default, |t| Links::new(t, e.len()));
     state.pull_clusters(tree, &visible);
@@ -550,7 +592,7 @@ pub fn run(
             }
             let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
             let extra = expansion(tree, &e, &clinks, vis, &state, eps, s);
-            check_gather(&e, &links, extra.as_ref(), s)?;
+            check_gather(&e, &links, extra.as_ref(), tree.is_some(), s)?;
             let (gather, cost) = gather_lists(
                 &ctx,
                 &links,
@@ -972,6 +1014,7 @@ fn check_gather(
     e: &Elements,
     links: &[Vec<Link>],
     extra: Option<&clusters::Expansion>,
+    clustered: bool,
     s: &Settings,
 ) -> crate::Result<()> {
     let Some((limit, source)) = budget::limit_of(s.max_memory) else {
@@ -995,7 +1038,7 @@ fn check_gather(
     if held.saturating_add(bytes) <= limit {
         return Ok(());
     }
-    let clusters = if s.clusters {
+    let clusters = if clustered {
         ""
     } else {
         ", --clusters on (links between groups of faces)"
@@ -1895,12 +1938,28 @@ mod tests {
             max_memory: Some(bytes),
             ..Settings::default()
         };
-        assert!(check_gather(&e, &links, None, &with(held + lists)).is_ok());
-        let msg = check_gather(&e, &links, None, &with(held + lists - 1))
+        assert!(check_gather(&e, &links, None, false, &with(held + lists)).is_ok());
+        let msg = check_gather(&e, &links, None, false, &with(held + lists - 1))
             .unwrap_err()
             .to_string();
         assert!(msg.contains("6400 entries over 64 leaves"), "{msg}");
         assert!(msg.contains("--error (now 0.03)"), "{msg}");
         assert!(msg.contains("--clusters on"), "{msg}");
+    }
+
+    /// `--clusters auto` clusters above [`AUTO_CLUSTER_ROOTS`] roots and where the pairs of
+    /// roots would not fit the memory limit, and nowhere else; on and off do as they say.
+    #[test]
+    fn auto_clustering_follows_the_roots_and_the_memory() {
+        let small = Some(64 << 20);
+        // 2,091 roots (the room with a sphere): 4.4 M pairs, 0.62 GiB; 64 MiB hold 665.
+        assert!(Clustering::Auto.resolve(2_091, small));
+        assert!(!Clustering::Auto.resolve(2_091, Some(1 << 30)));
+        assert!(!Clustering::Auto.resolve(19, small));
+        assert!(!Clustering::Auto.resolve(AUTO_CLUSTER_ROOTS, Some(4 << 30)));
+        assert!(Clustering::Auto.resolve(AUTO_CLUSTER_ROOTS + 1, Some(u64::MAX)));
+        assert!(!Clustering::Off.resolve(1_000_000, small));
+        assert!(Clustering::On.resolve(2, None));
+        assert_eq!(Settings::default().clusters, Clustering::Auto);
     }
 }
