@@ -119,7 +119,7 @@ impl Clustering {
 pub const CLUSTERS: Clustering = Clustering::Auto;
 
 /// Whether cluster links split receiving elements by default ([`Settings::split_receivers`]).
-pub const SPLIT_RECEIVERS: bool = false;
+pub const SPLIT_RECEIVERS: bool = true;
 
 /// Settings of a hierarchical solution.
 #[derive(Clone, Debug, PartialEq)]
