@@ -89,6 +89,37 @@ pub const HALF_MIN: usize = 6;
 #[repr(C, align(32))]
 struct Valid8([i32; 8]);
 
+impl Valid8 {
+    /// The first `m` lanes valid.
+    #[inline(always)]
+    fn first(m: usize) -> Valid8 {
+        let mut v = Valid8([0i32; 8]);
+        v.0[..m].fill(-1);
+        v
+    }
+}
+
+/// Lanes `[lo, lo + 8)` of a 16-wide packet as an 8-wide one: origins, directions, `tnear`
+/// and `tfar` copied, the fields no query reads set as a fresh packet has them.
+#[inline(always)]
+fn half_of(p: &sys::RTCRay16, lo: usize) -> sys::RTCRay8 {
+    let lanes = |a: &[f32; 16]| -> [f32; 8] { a[lo..lo + 8].try_into().unwrap() };
+    sys::RTCRay8 {
+        org_x: lanes(&p.org_x),
+        org_y: lanes(&p.org_y),
+        org_z: lanes(&p.org_z),
+        tnear: lanes(&p.tnear),
+        dir_x: lanes(&p.dir_x),
+        dir_y: lanes(&p.dir_y),
+        dir_z: lanes(&p.dir_z),
+        time: [0.0; 8],
+        tfar: lanes(&p.tfar),
+        mask: [u32::MAX; 8],
+        id: [0; 8],
+        flags: [0; 8],
+    }
+}
+
 /// `RTCRayHit8` with spare room after it (8 lanes of `instPrimID`), as [`PaddedRayHit`].
 #[repr(C, align(32))]
 struct PaddedRayHit8 {
@@ -119,22 +150,8 @@ fn occluded_half(scene: sys::RTCScene, p: &mut sys::RTCRay16, h: usize, n: usize
         }
         return;
     }
-    let mut valid = Valid8([0i32; 8]);
-    valid.0[..m].fill(-1);
-    let mut r = sys::RTCRay8 {
-        org_x: p.org_x[lo..lo + 8].try_into().unwrap(),
-        org_y: p.org_y[lo..lo + 8].try_into().unwrap(),
-        org_z: p.org_z[lo..lo + 8].try_into().unwrap(),
-        tnear: p.tnear[lo..lo + 8].try_into().unwrap(),
-        dir_x: p.dir_x[lo..lo + 8].try_into().unwrap(),
-        dir_y: p.dir_y[lo..lo + 8].try_into().unwrap(),
-        dir_z: p.dir_z[lo..lo + 8].try_into().unwrap(),
-        time: [0.0; 8],
-        tfar: p.tfar[lo..lo + 8].try_into().unwrap(),
-        mask: [u32::MAX; 8],
-        id: [0; 8],
-        flags: [0; 8],
-    };
+    let valid = Valid8::first(m);
+    let mut r = half_of(p, lo);
     // SAFETY: a committed scene; `RTCRay8` and `Valid8` are 32-byte aligned as
     // rtcOccluded8 requires; lanes with valid = 0 are ignored.
     unsafe { sys::rtcOccluded8(valid.0.as_ptr(), scene, &mut r, null_mut()) };
@@ -556,25 +573,10 @@ impl EmbreeScene {
         if m == 0 {
             return;
         }
-        let mut valid = Valid8([0i32; 8]);
-        valid.0[..m].fill(-1);
-        let p = &rh.ray;
+        let valid = Valid8::first(m);
         let mut q = PaddedRayHit8 {
             rayhit: sys::RTCRayHit8 {
-                ray: sys::RTCRay8 {
-                    org_x: p.org_x[lo..lo + 8].try_into().unwrap(),
-                    org_y: p.org_y[lo..lo + 8].try_into().unwrap(),
-                    org_z: p.org_z[lo..lo + 8].try_into().unwrap(),
-                    tnear: p.tnear[lo..lo + 8].try_into().unwrap(),
-                    dir_x: p.dir_x[lo..lo + 8].try_into().unwrap(),
-                    dir_y: p.dir_y[lo..lo + 8].try_into().unwrap(),
-                    dir_z: p.dir_z[lo..lo + 8].try_into().unwrap(),
-                    time: [0.0; 8],
-                    tfar: p.tfar[lo..lo + 8].try_into().unwrap(),
-                    mask: [u32::MAX; 8],
-                    id: [0; 8],
-                    flags: [0; 8],
-                },
+                ray: half_of(&rh.ray, lo),
                 hit: sys::RTCHit8 {
                     geomID: [sys::RTC_INVALID_GEOMETRY_ID; 8],
                     ..Default::default()
