@@ -176,8 +176,8 @@ struct StudyBakesArgs {
     /// children (see `bake --descend`).
     #[arg(long, default_value_t = radiosity::hierarchy::DESCEND)]
     descend: f64,
-    /// Split the receivers of links whose shadow boundary crosses them first (see `bake
-    /// --split-shadows`).
+    /// Split receivers whose shadows vary across them by more than the tolerance (see
+    /// `bake --split-shadows`).
     #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::SPLIT_SHADOWS { Switch::On } else { Switch::Off })]
     split_shadows: Switch,
 }
@@ -370,9 +370,9 @@ struct HierarchyArgs {
     /// sharper shadows on them: docs/HIERARCHY.md, Clustering).
     #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::SPLIT_RECEIVERS { Switch::On } else { Switch::Off })]
     split_receivers: Switch,
-    /// Hierarchical: a partly visible link whose shadow boundary crosses its receiver
-    /// splits the receiver first (sharper shadows from large lights, for more CPU:
-    /// docs/HIERARCHY.md, Shadows across receivers).
+    /// Hierarchical: split a receiver whose shadows vary across it by more than the
+    /// tolerance (sharper shadows, for more CPU: docs/HIERARCHY.md, Shadows across
+    /// receivers).
     #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::SPLIT_SHADOWS { Switch::On } else { Switch::Off })]
     split_shadows: Switch,
     /// Hierarchical: share of the link tolerance above which the final gather cuts a

@@ -68,11 +68,13 @@ pub struct Link {
     /// True when [`Blockers`] proved that nothing blocks the pair (no ray was cast): then
     /// nothing blocks any pair of their pieces either.
     pub proved: bool,
-    /// True when the rays found the shadow boundary across the receiver: the visible
-    /// fractions of its quadrants' rays differ by at least [`ACROSS`] (else a partly
-    /// visible link's shadow lies across the source, which splitting the receiver does not
-    /// resolve).
-    pub across: bool,
+    /// How the visible fraction changes across the receiver, as its rays saw it: per
+    /// parameter of the receiver (`u`, `v`), the fraction of the rays from its upper half
+    /// minus that of its lower half, times 127 ([`Tilt`]). A shadow boundary across the
+    /// receiver tilts it; one across the source (the receiver sees the same part of the
+    /// source from everywhere) does not. [`super::refine::Oracle::shadowed`] adds the
+    /// tilts of a receiver's links.
+    pub tilt: Tilt,
     /// The unoccluded factor (`f` is this times `vis`): what the refinement decides on
     /// where visibility was sampled, so that the rays' noise does not pick which links are
     /// kept ([`super::refine::Oracle::error`]).
@@ -236,7 +238,7 @@ pub fn evaluate(
             se: 0.0,
             df: (fmax - fmin) + q_err,
             partial: false,
-            across: false,
+            tilt: Tilt::default(),
             vis: 1.0,
             proved: true,
             open: f_open,
@@ -257,7 +259,7 @@ pub fn evaluate(
             se: f_open * fraction_se(0.0, n),
             df: fmax + q_err,
             partial: true,
-            across: false,
+            tilt: Tilt::default(),
             vis: 0.0,
             proved: false,
             open: f_open,
@@ -271,7 +273,7 @@ pub fn evaluate(
             se: f_open * fraction_se(seen.v, n),
             df: if partial { fmax } else { fmax - fmin } + q_err,
             partial,
-            across: seen.across,
+            tilt: seen.tilt,
             vis: seen.v,
             proved: false,
             open: f_open,
@@ -372,14 +374,28 @@ pub struct Seen {
     pub v: f64,
     /// Rays traced.
     pub rays: u64,
-    /// The receiver's quadrants saw different fractions ([`Link::across`]).
-    pub across: bool,
+    /// How the visible fraction changes across the receiver ([`Link::tilt`]).
+    pub tilt: Tilt,
 }
 
-/// Least difference between the visible fractions of a receiver's quadrants (each from
-/// its quarter of the `n × n` receiver strata) for a link's shadow boundary to be taken as
-/// lying across the receiver ([`Link::across`]).
-pub const ACROSS: f64 = 0.5;
+/// The change of a link's visible fraction across its receiver: per receiver parameter,
+/// the visible fraction of the rays from the half where it exceeds 1/2 minus that of the
+/// other half, in 1/127ths (0 where a half cast no ray). Held in two bytes, beside the
+/// link's flags, so that links are no larger for it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Tilt(pub [i8; 2]);
+
+impl Tilt {
+    /// From the differences, each in `[-1, 1]`.
+    pub fn new(d: [f64; 2]) -> Tilt {
+        Tilt(d.map(|x| (x.clamp(-1.0, 1.0) * 127.0).round() as i8))
+    }
+
+    /// The differences, each in `[-1, 1]`.
+    pub fn get(self) -> [f64; 2] {
+        self.0.map(|x| f64::from(x) / 127.0)
+    }
+}
 
 /// Tries per stratum at finding a receiver point that is not buried.
 pub(super) const BURIED_TRIES: usize = 4;
@@ -674,7 +690,7 @@ fn judge(d: &Drawn, free: &[bool]) -> Seen {
         return Seen {
             v: 0.0,
             rays: 0,
-            across: false,
+            tilt: Tilt::default(),
         };
     }
     let (weights, quadrant, mean, cells, partly) =
@@ -705,21 +721,27 @@ fn judge(d: &Drawn, free: &[bool]) -> Seen {
     } else {
         1.0
     };
-    // Per quadrant of the receiver: rays free and cast.
-    let mut per = [(0u32, 0u32); 4];
+    // Per half of the receiver along each parameter (bit 0 of the quadrant: u, bit 1:
+    // v): rays free and cast.
+    let mut per = [[(0u32, 0u32); 2]; 2];
     for (&q, &f) in quadrant.iter().zip(free) {
-        per[q as usize].0 += u32::from(f);
-        per[q as usize].1 += 1;
+        for (axis, halves) in per.iter_mut().enumerate() {
+            let h = &mut halves[usize::from((q >> axis) & 1)];
+            h.0 += u32::from(f);
+            h.1 += 1;
+        }
     }
-    let fractions = per
-        .iter()
-        .filter(|p| p.1 > 0)
-        .map(|p| f64::from(p.0) / f64::from(p.1));
-    let (lo, hi) = fractions.fold((1.0f64, 0.0f64), |(lo, hi), x| (lo.min(x), hi.max(x)));
+    let tilt = per.map(|[lo, hi]| {
+        if lo.1 == 0 || hi.1 == 0 {
+            0.0
+        } else {
+            f64::from(hi.0) / f64::from(hi.1) - f64::from(lo.0) / f64::from(lo.1)
+        }
+    });
     Seen {
         v,
         rays: d.segs.len() as u64,
-        across: hi - lo >= ACROSS,
+        tilt: Tilt::new(tilt),
     }
 }
 

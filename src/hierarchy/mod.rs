@@ -184,15 +184,13 @@ pub struct Settings {
     /// spheres' shadows, where the unclustered bake and the switch off are 17% off. Off by
     /// default until the checks set against the unclustered bake are remade.
     pub split_receivers: bool,
-    /// A partly visible link whose shadow boundary lies across its receiver (the visible
-    /// fractions of the receiver's quadrants differ by at least [`link::ACROSS`]) splits
-    /// the receiver first, whatever the source's size (`--split-shadows`). Without it the
-    /// larger element is split, often the source (a light), and each piece's link then
-    /// falls within the tolerance while the receiver keeps the shadow boundary across
-    /// it. Measured (docs/HIERARCHY.md, *Shadows across receivers*): on `room-spheres-8`
-    /// at `--error 0.05`, floor points in the spheres' shadows within 2.3% of Mitsuba 3 on
-    /// average instead of 17%, for 2.3 times the CPU; on the Cornell box no better per
-    /// CPU-second than a tighter `--error`. Off by default.
+    /// A receiver whose shadows vary across it by more than its tolerance, as the tilts of
+    /// its partly visible links add up ([`refine::Oracle::shadowed`]), is split, its
+    /// partly visible links going to its children (`--split-shadows`). Without it the
+    /// larger element of a link is split, often the source (a light), and each piece's
+    /// link then falls within the tolerance while the receiver keeps the shadow boundaries
+    /// of all the pieces across it. Measured (docs/HIERARCHY.md, *Shadows across
+    /// receivers*).
     pub split_shadows: bool,
     /// Memory the solution may take (`--max-memory`); `None` for the available memory
     /// ([`budget::limit_of`]). Checked before the initial links and as links are added.
@@ -1714,13 +1712,15 @@ fn refine_links(
                 tol: rel,
                 min_area,
                 shadows: s.split_shadows,
+                rays: s.rays,
             };
             (0..links.len())
                 .into_par_iter()
                 .flat_map_iter(|r| {
                     let oracle = &oracle;
+                    let shadowed = oracle.shadowed(r as u32, &links[r]);
                     links[r].iter().enumerate().filter_map(move |(k, l)| {
-                        match oracle.decide(r as u32, l) {
+                        match oracle.decide(r as u32, l, shadowed) {
                             Decision::Keep => None,
                             d => Some((r as u32, k, d)),
                         }
@@ -1825,6 +1825,7 @@ fn finish_report<'a>(
         tol: rel,
         min_area,
         shadows: false,
+        rays: 4,
     };
     report.unresolved = (0..e.len())
         .map(|p| {
@@ -1888,7 +1889,7 @@ mod tests {
             se: 0.0,
             df: 0.0,
             partial: false,
-            across: false,
+            tilt: link::Tilt::default(),
             vis: 1.0,
             proved: true,
             open: 0.01,

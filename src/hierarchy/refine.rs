@@ -124,9 +124,12 @@ pub struct Oracle<'a> {
     pub tol: Relative,
     /// No element is split into children smaller than this.
     pub min_area: f64,
-    /// Split the receiver first of a partly visible link whose shadow boundary lies
-    /// across it ([`Link::across`]; [`super::Settings::split_shadows`]).
+    /// Split a receiver whose shadows vary across it by more than its tolerance
+    /// ([`Oracle::shadowed`]; [`super::Settings::split_shadows`]).
     pub shadows: bool,
+    /// Visibility strata per side of a link: `rays²` rays, half of them from each half of
+    /// the receiver along either parameter ([`Link::tilt`]).
+    pub rays: usize,
 }
 
 impl Oracle<'_> {
@@ -154,8 +157,52 @@ impl Oracle<'_> {
         self.elements.area[e as usize] / 4.0 >= self.min_area
     }
 
-    /// What to do with link `l` into `r`.
-    pub fn decide(&self, r: u32, l: &Link) -> Decision {
+    /// True when the shadows on receiver `r` from its own links `links` vary across it by
+    /// more than its tolerance, beyond the noise of the rays that saw them.
+    ///
+    /// A link refined by splitting its larger element splits a large light first; each of
+    /// its pieces' partly visible links then falls within the tolerance on its own (its
+    /// error `ρ B F_max` shrinks with the piece), while their shadow boundaries, which all
+    /// run across the same receiver, add up there. So the shadow's contrast is judged per
+    /// receiver: each partly visible link's change of irradiance across the receiver is
+    /// about `ρ_r B_s F_rs t`, with `t` its tilt ([`Link::tilt`], per receiver parameter,
+    /// signed), and these add as vectors over the links,
+    ///
+    /// `G = Σ_l ρ_r B_l F_l t_l`,
+    ///
+    /// where the shadows of many light pieces line up and the rays' noise does not. Each
+    /// tilt is a difference of two binomial fractions of `n²/2` rays, with variance
+    /// `4 v (1 - v) / n²` (`v` the link's visible fraction); the receiver is shadowed when
+    /// `|G| - Z σ_G > ε_r` ([`SHADOW_Z`]), and then each of its partly visible links goes
+    /// to its four children, whatever its own error. Where the receiver is smaller than
+    /// the penumbra the tilts fall with its size and the splitting stops; a sharp shadow
+    /// is followed down to the minimum area along its boundary only.
+    pub fn shadowed(&self, r: u32, links: &[Link]) -> bool {
+        if !self.shadows || !self.splittable(r) {
+            return false;
+        }
+        let rho = self.rho[r as usize];
+        let (eps, k) = self.tol.weights(self.b[r as usize]);
+        let n2 = (self.rays * self.rays).max(1) as f64;
+        let (mut g, mut var) = ([0.0f64; 2], 0.0f64);
+        for l in links.iter().filter(|l| l.partial) {
+            let bs = self.b[l.src as usize];
+            let w = (0..3).map(|c| rho[c] * bs[c] * k[c]).fold(0.0, f64::max) * l.open;
+            let t = l.tilt.get();
+            g[0] += w * t[0];
+            g[1] += w * t[1];
+            let v = l.vis.clamp(0.0, 1.0);
+            var += w * w * 4.0 * v * (1.0 - v) / n2;
+        }
+        let (g, sd) = ((g[0] * g[0] + g[1] * g[1]).sqrt(), var.sqrt());
+        g - SHADOW_Z * sd > eps
+    }
+
+    /// What to do with link `l` into `r`; `shadowed` is [`Oracle::shadowed`] of `r`.
+    pub fn decide(&self, r: u32, l: &Link, shadowed: bool) -> Decision {
+        if shadowed && l.partial {
+            return Decision::SplitReceiver;
+        }
         let (var, spr, eps) = self.error(r, l);
         if var + spr <= eps {
             return Decision::Keep;
@@ -167,9 +214,7 @@ impl Oracle<'_> {
             (true, false) => Decision::SplitReceiver,
             (false, true) => Decision::SplitSource,
             (true, true) => {
-                if self.shadows && l.across && var >= spr {
-                    Decision::SplitReceiver
-                } else if spr > var || a[l.src as usize] > a[r as usize] {
+                if spr > var || a[l.src as usize] > a[r as usize] {
                     Decision::SplitSource
                 } else {
                     Decision::SplitReceiver
@@ -178,6 +223,11 @@ impl Oracle<'_> {
         }
     }
 }
+
+/// Standard errors of a receiver's summed shadow tilt that its size must exceed, beyond
+/// the tolerance, for [`Oracle::shadowed`] to split it: two, for one side of a test at
+/// about 2%.
+pub const SHADOW_Z: f64 = 2.0;
 
 /// A contact segment on a root patch: the end points of an edge of another patch that
 /// lies in this patch's plane.
@@ -505,6 +555,77 @@ mod tests {
     }
 
     #[test]
+    fn shadows_that_line_up_across_a_receiver_split_it_and_noise_does_not() {
+        use crate::hierarchy::link::Tilt;
+        // One receiver (element 0, ρ 0.5) lit by eight pieces of a light (element 0 as
+        // the source too: only its radiosity, 1, is read), each a partly visible link
+        // with factor 0.02 within the tolerance 0.01 × 1 on its own (0.5 × 1 × 0.02 t).
+        let e = floor();
+        let rho = vec![[0.5; 3]];
+        let b = vec![[1.0; 3]];
+        let spread = vec![[0.0; 3]];
+        let piece = |t: [f64; 2], vis: f64| Link {
+            src: 0,
+            f: 0.02 * vis,
+            err: 0.0,
+            se: 0.0,
+            df: 0.02,
+            partial: true,
+            tilt: Tilt::new(t),
+            vis,
+            proved: false,
+            open: 0.02,
+        };
+        let o = Oracle {
+            elements: &e,
+            rho: &rho,
+            b: &b,
+            spread: &spread,
+            tol: Relative {
+                error: 0.01,
+                mean: 1.0,
+                low: 1.0,
+                high: 1.0,
+            },
+            min_area: 1e-3,
+            shadows: true,
+            rays: 4,
+        };
+        // Every piece's boundary across u the same way: G = 8 × 0.01 × 0.75 = 0.06 against
+        // 0.01 + 2 σ (σ = 0.01 √(8 × 4 × 0.25 / 16) ≈ 0.0071).
+        let lined = vec![piece([0.75, 0.0], 0.5); 8];
+        assert!(o.shadowed(0, &lined));
+        assert_eq!(o.decide(0, &lined[0], true), Decision::SplitReceiver);
+        // The same tilts with alternating signs (the rays' noise): they cancel.
+        let noise: Vec<Link> = (0..8)
+            .map(|k| piece([if k % 2 == 0 { 0.75 } else { -0.75 }, 0.0], 0.5))
+            .collect();
+        assert!(!o.shadowed(0, &noise));
+        // One piece alone: within the tolerance and its noise.
+        assert!(!o.shadowed(0, &lined[..1]));
+        // Tilts along both parameters add as a vector: 8 × 0.01 × (0.5, 0.5) has length
+        // 0.057.
+        assert!(o.shadowed(0, &vec![piece([0.5, 0.5], 0.5); 8]));
+        // Not without the switch, nor below the minimum area, nor for visible links.
+        assert!(!Oracle {
+            shadows: false,
+            ..o
+        }
+        .shadowed(0, &lined));
+        assert!(!Oracle { min_area: 5.0, ..o }.shadowed(0, &lined));
+        let open: Vec<Link> = lined
+            .iter()
+            .map(|l| Link {
+                partial: false,
+                ..*l
+            })
+            .collect();
+        assert!(!o.shadowed(0, &open));
+        // A link within its tolerance on a receiver not shadowed is kept.
+        assert_eq!(o.decide(0, &lined[0], false), Decision::Keep);
+    }
+
+    #[test]
     fn oracle_stops_at_tolerance_and_minimum_area() {
         let e = floor();
         let rho = vec![[0.5; 3]];
@@ -517,7 +638,7 @@ mod tests {
             se: 0.0,
             df: 0.2,
             partial: false,
-            across: false,
+            tilt: crate::hierarchy::link::Tilt::default(),
             vis: 1.0,
             proved: false,
             open: 0.1,
@@ -537,17 +658,18 @@ mod tests {
             tol: tol(0.05),
             min_area: 1.0,
             shadows: false,
+            rays: 4,
         };
         // Error 0.5 * 1 * 0.2 = 0.1 > 0.05: split (receiver on a tie of areas).
-        assert_eq!(o.decide(0, &link), Decision::SplitReceiver);
+        assert_eq!(o.decide(0, &link, false), Decision::SplitReceiver);
         let o2 = Oracle { tol: tol(0.2), ..o };
-        assert_eq!(o2.decide(0, &link), Decision::Keep);
+        assert_eq!(o2.decide(0, &link, false), Decision::Keep);
         let o3 = Oracle {
             min_area: 5.0,
             tol: tol(0.05),
             ..o2
         };
-        assert_eq!(o3.decide(0, &link), Decision::Keep);
+        assert_eq!(o3.decide(0, &link, false), Decision::Keep);
     }
 
     #[test]
@@ -586,7 +708,7 @@ mod tests {
             se: 0.0,
             df: 0.015,
             partial: false,
-            across: false,
+            tilt: crate::hierarchy::link::Tilt::default(),
             vis: 1.0,
             proved: false,
             open: 0.1,
@@ -601,8 +723,9 @@ mod tests {
                 tol,
                 min_area: 1.0,
                 shadows: false,
+                rays: 4,
             }
-            .decide(1, &link)
+            .decide(1, &link, false)
         };
         // Bright receivers keep it, dark ones (to the floor) refine it; the absolute
         // tolerance (0.02) keeps it whatever the receiver.

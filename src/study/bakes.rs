@@ -273,7 +273,7 @@ pub struct Settings {
     /// Share of the link tolerance above which the final gather cuts a source into its
     /// children ([`hierarchy::Settings::descend`]).
     pub descend: f64,
-    /// Split the receivers of links whose shadow boundary crosses them first
+    /// Split receivers whose shadows vary across them by more than the tolerance
     /// ([`hierarchy::Settings::split_shadows`]).
     pub split_shadows: bool,
     /// Output folder.
