@@ -576,7 +576,7 @@ fn points(sol: &Solution) -> Vec<(usize, Option<f64>)> {
 /// Clustered against unclustered on a 10^4-triangle scene (`room-spheres-8`: 10,240
 /// sphere triangles and the room, `--error 0.05`, or `RADIOSITY_TEN_K_ERROR`): at least 10
 /// times fewer initial links clustered, object averages within 1%, root (input face)
-/// averages within 1% and points within 3% at the 99th percentile, and every root's
+/// averages within 2% and points within 3% at the 99th percentile, and every root's
 /// difference within the sum of the two bakes' estimated errors. The unclustered bake
 /// evaluates 10^8 candidate pairs (11 GB peak, 3 to 4 minutes here): run by hand,
 /// `cargo test --release --test tests clustered_and_unclustered_at_ten_thousand -- --ignored --nocapture`.
@@ -603,7 +603,14 @@ fn clustered_and_unclustered_at_ten_thousand_triangles() {
     );
     let ta = t.elapsed().as_secs_f64();
     let t = std::time::Instant::now();
-    let (_, b) = solve("room-spheres-8", res, &base);
+    let (_, b) = solve(
+        "room-spheres-8",
+        res,
+        &Settings {
+            clusters: Clustering::Off,
+            ..base.clone()
+        },
+    );
     let tb = t.elapsed().as_secs_f64();
     let (ra, oa) = averages(&p, &a);
     let (rb, ob) = averages(&p, &b);
@@ -714,15 +721,18 @@ fn clustered_and_unclustered_at_ten_thousand_triangles() {
             leaves_under(&b, r)
         );
     }
-    // Measured (docs/HIERARCHY.md, Clustering): at --error 0.05, 1/55 of the initial
-    // links, objects within 0.32% (the ceiling; the others within 0.15%), roots within
-    // 0.79% at the 99th percentile but up to 12.6% on single sphere faces, every root's
-    // difference within the sum of the two bakes' estimated errors. The pointwise
-    // 3% does not hold everywhere: what is asserted is what holds.
+    // Measured (docs/HIERARCHY.md, Clustering), with the default settings (split
+    // receivers and split shadows): at --error 0.05, 1/55 of the initial links, objects
+    // within 0.16%, roots within 1.74% at the 99th percentile (0.80% before receivers and
+    // shadows were split: single sphere faces, one leaf each, whose estimated errors are
+    // 3-8% in both bakes), points within 2.09% at the 99th percentile, every root's
+    // difference within the sum of the two bakes' estimated errors. At --error 0.02: 1/38,
+    // 0.24%, 1.26%, 1.74%, none beyond. The pointwise 3% does not hold at every
+    // point (the worst: 27% at 0.05, 7.9% at 0.02): what is asserted is what holds.
     assert!(ia * 10 <= ib, "initial links {ia} vs {ib}");
     assert!(worst_obj < 0.01, "object averages differ by {worst_obj}");
     assert!(
-        r99 < 0.01,
+        r99 < 0.02,
         "root averages differ by {r99} at the 99th percentile"
     );
     assert!(p99 < 0.03, "points differ by {p99} at the 99th percentile");

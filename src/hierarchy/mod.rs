@@ -73,7 +73,7 @@ pub const RELATIVE_LOW: f64 = 1.0;
 pub const RELATIVE_HIGH: f64 = 1.0;
 
 /// Default [`Settings::split_shadows`].
-pub const SPLIT_SHADOWS: bool = false;
+pub const SPLIT_SHADOWS: bool = true;
 
 /// Default [`Settings::descend`].
 pub const DESCEND: f64 = 0.03;
