@@ -517,8 +517,8 @@ fn cornell_furnace_keeps_its_light() {
     // The estimated error per leaf against the actual `|B - 2|` (docs/HIERARCHY.md, *The
     // error estimate*): measured, the estimate's mean is 4.99 times the actual mean (4.3
     // before receivers were split for their shadows: the actual error fell), and the
-    // actual error is above the estimate on 0.6% of the visible area (1.1% before). (The estimate that
-    // summed the links' refinement bounds was 630 times the actual mean.)
+    // actual error is above the estimate on 0.6% of the visible area (1.1% before). (The
+    // estimate that summed the links' refinement bounds was 630 times the actual mean.)
     let e = &sol.elements;
     let (mut actual, mut above, mut area) = (0.0, 0.0, 0.0);
     for l in e.leaves() {
