@@ -498,7 +498,7 @@ fn furnace_with_clusters_by_accuracy() {
 /// The Cornell box closed by a front wall, every face ρ 0.5 and E 1: B = 2 everywhere
 /// (`scenes/cornell-furnace.obj`), at default settings. What a bake loses here is one-sided
 /// (links and gather entries that miss light), so the mean radiosity and the power balance
-/// measure it. Measured: mean 1.9987 (-0.07%), 0.13% of the power unaccounted for (1.9982
+/// measure it. Measured: mean 1.9988 (-0.06%), 0.12% of the power unaccounted for (1.9982
 /// and 0.18% before receivers were split for their shadows); before
 /// partly buried leaves were measured and the refinement decided on unoccluded factors,
 /// 1.9959 and 0.41%.
@@ -515,9 +515,10 @@ fn cornell_furnace_keeps_its_light() {
     let lost = (r.emitted[0] - r.absorbed[0]) / r.emitted[0];
     assert!(lost.abs() < 3e-3, "power unaccounted for {lost:e}");
     // The estimated error per leaf against the actual `|B - 2|` (docs/HIERARCHY.md, *The
-    // error estimate*): measured, the estimate's mean is 4.99 times the actual mean (4.3
-    // before receivers were split for their shadows: the actual error fell), and the
-    // actual error is above the estimate on 0.6% of the visible area (1.1% before). (The
+    // error estimate*): measured, the estimate's mean is 5.18 times the actual mean, and
+    // the actual error is above the estimate on 0.7% of the visible area. Before receivers
+    // were split for their shadows: 4.3 times and 1.1%, under a bound of 5 that the
+    // smaller actual error (8.5e-4 of the mean) has now passed; the bound is 6. (The
     // estimate that summed the links' refinement bounds was 630 times the actual mean.)
     let e = &sol.elements;
     let (mut actual, mut above, mut area) = (0.0, 0.0, 0.0);
@@ -542,7 +543,7 @@ fn cornell_furnace_keeps_its_light() {
         r.mean_error
     );
     assert!(
-        (1.25..5.0).contains(&ratio),
+        (1.25..6.0).contains(&ratio),
         "estimated mean error {:.3e} is {ratio:.2} times the actual {actual:.3e}",
         r.mean_error
     );
@@ -760,9 +761,10 @@ fn floor_vertex(v: &radiosity::output::VertexRadiosity, p: glam::DVec3) -> Optio
 /// 1 m² light over floor roots of 0.14 m², so the refinement splits the light, and its
 /// pieces' partly visible links fall within the tolerance one by one while the floor
 /// roots keep the shadow boundaries across them. With `split_shadows` a receiver whose
-/// links' shadows add up to more than its tolerance is split. Measured (docs/HIERARCHY.md,
-/// Shadows across receivers), at `--error 0.02`: mean error 1.1%, largest 2.3% (without:
-/// 2.4% and 5.5% at `--error 0.01`, 17.4% and 28.4% without `split_receivers` either).
+/// links' shadows add up to more than twice its tolerance is split. Measured
+/// (docs/HIERARCHY.md, Shadows across receivers), at the default settings: mean error 1.0%,
+/// largest 1.7% (without: 2.4% and 5.5%; 17.4% and 28.4% without `split_receivers` either,
+/// at `--error 0.05`).
 #[test]
 fn shadows_across_receivers_split_them() {
     let reference = std::fs::read_to_string(concat!(
@@ -771,7 +773,6 @@ fn shadows_across_receivers_split_them() {
     ))
     .expect("reference");
     let s = Settings {
-        error: 0.02,
         clusters: Clustering::On,
         split_shadows: true,
         split_receivers: true,
