@@ -498,10 +498,11 @@ fn furnace_with_clusters_by_accuracy() {
 /// The Cornell box closed by a front wall, every face ρ 0.5 and E 1: B = 2 everywhere
 /// (`scenes/cornell-furnace.obj`), at default settings. What a bake loses here is one-sided
 /// (links and gather entries that miss light), so the mean radiosity and the power balance
-/// measure it. Measured: mean 1.9988 (-0.06%), 0.12% of the power unaccounted for (1.9982
-/// and 0.18% before receivers were split for their shadows); before
-/// partly buried leaves were measured and the refinement decided on unoccluded factors,
-/// 1.9959 and 0.41%.
+/// measure it. Measured: mean 2.0000, 2.3e-5 of the power unaccounted for, since links
+/// whose rays were all blocked go to Russian roulette instead of being dropped (before:
+/// 1.9988 and 1.2e-3, which the bounds of 5e-4 below refuse; 1.9982 and 0.18% before
+/// receivers were split for their shadows; 1.9959 and 0.41% before partly buried leaves
+/// were measured and the refinement decided on unoccluded factors).
 #[test]
 fn cornell_furnace_keeps_its_light() {
     let (_, sol) = solve(
@@ -511,12 +512,13 @@ fn cornell_furnace_keeps_its_light() {
     );
     let r = &sol.report;
     let mean = r.mean_radiosity;
-    assert!((mean - 2.0).abs() < 3e-3, "mean radiosity {mean}");
+    assert!((mean - 2.0).abs() < 5e-4, "mean radiosity {mean}");
     let lost = (r.emitted[0] - r.absorbed[0]) / r.emitted[0];
-    assert!(lost.abs() < 3e-3, "power unaccounted for {lost:e}");
+    assert!(lost.abs() < 5e-4, "power unaccounted for {lost:e}");
     // The estimated error per leaf against the actual `|B - 2|` (docs/HIERARCHY.md, *The
-    // error estimate*): measured, the estimate's mean is 5.18 times the actual mean, and
-    // the actual error is above the estimate on 0.7% of the visible area. Before receivers
+    // error estimate*): measured, the estimate's mean is 5.58 times the actual mean, and
+    // the actual error is above the estimate on 0.55% of the visible area (5.18 and 0.7%
+    // before the roulette, whose entries widen the bars). Before receivers
     // were split for their shadows: 4.3 times and 1.1%, under a bound of 5 that the
     // smaller actual error (8.5e-4 of the mean) has now passed; the bound is 6. (The
     // estimate that summed the links' refinement bounds was 630 times the actual mean.)

@@ -1233,6 +1233,18 @@ struct Entry {
     /// The unoccluded factor: what decides whether the source is cut into pieces (not the
     /// traced estimate, whose noise would then pick which entries are kept).
     open: f64,
+    /// How many links the entry stands for: `1 / ROULETTE` for one that comes from a link
+    /// kept by Russian roulette ([`link::Basis::Roulette`]), else 1.
+    count: f64,
+}
+
+/// How many links the link `k` stands for ([`Entry::count`]).
+fn stands_for(k: &Link) -> f64 {
+    if k.basis == link::Basis::Roulette {
+        1.0 / link::ROULETTE
+    } else {
+        1.0
+    }
 }
 
 /// The leaves' gather lists: for each leaf, its own links as they are, and for every link
@@ -1389,6 +1401,7 @@ pub fn gather_lists(
                         q_bar: q_err * v,
                         traced,
                         open: f,
+                        count: 1.0,
                     });
                     entry
                 };
@@ -1401,7 +1414,12 @@ pub fn gather_lists(
                     links[li]
                         .iter()
                         .filter_map(|k| {
-                            piece(k.src, Sight::Trace, open(k.src, None, &mut cost), &mut cost)
+                            piece(k.src, Sight::Trace, open(k.src, None, &mut cost), &mut cost).map(
+                                |en| Entry {
+                                    count: stands_for(k),
+                                    ..en
+                                },
+                            )
                         })
                         .collect()
                 } else {
@@ -1413,7 +1431,7 @@ pub fn gather_lists(
                     links[li]
                         .iter()
                         .filter_map(|k| {
-                            if k.proved {
+                            if k.basis == link::Basis::Proved {
                                 Some(Entry {
                                     src: k.src,
                                     f: k.f,
@@ -1422,6 +1440,7 @@ pub fn gather_lists(
                                     q_bar: k.err,
                                     traced: None,
                                     open: k.open,
+                                    count: 1.0,
                                 })
                             } else {
                                 piece(
@@ -1430,6 +1449,10 @@ pub fn gather_lists(
                                     open(k.src, Some((k.open, k.err)), &mut cost),
                                     &mut cost,
                                 )
+                                .map(|en| Entry {
+                                    count: stands_for(k),
+                                    ..en
+                                })
                             }
                         })
                         .collect()
@@ -1445,9 +1468,9 @@ pub fn gather_lists(
                         // blockers' proof holds for the ancestor's link (then for every piece of
                         // the pair) or for the leaf itself, it checks its own.
                         let bar = if k.f > 0.0 { k.se / k.f } else { 0.0 };
-                        let v = if k.partial || partly {
+                        let v = if k.partial || partly || k.basis == link::Basis::Roulette {
                             Sight::Trace
-                        } else if k.proved
+                        } else if k.basis == link::Basis::Proved
                             || ctx.blockers.unoccluded_within(
                                 e.corners(l),
                                 e.root[li],
@@ -1461,7 +1484,10 @@ pub fn gather_lists(
                             Sight::Check(k.vis, bar)
                         };
                         if let Some(en) = piece(k.src, v, open(k.src, None, &mut cost), &mut cost) {
-                            stack.push(en);
+                            stack.push(Entry {
+                                count: stands_for(k),
+                                ..en
+                            });
                         }
                     }
                     a = e.parent[a as usize];
@@ -1470,8 +1496,16 @@ pub fn gather_lists(
                 while let Some(en) = stack.pop() {
                     let s = en.src;
                     if e.is_leaf(s) || weight(s, spread) * en.open <= descend * eps {
-                        let f = en.f / exposed;
-                        out.push((s, f, en.q_bar / exposed, f * en.v_bar));
+                        let f = en.f * en.count / exposed;
+                        // A roulette entry's bar adds the roulette's own spread: the entry is
+                        // `count` times the traced value, or nothing, so its variance is
+                        // about `(1 - ROULETTE) f²`.
+                        let se = if en.count > 1.0 {
+                            f * (en.v_bar.powi(2) + 1.0 - link::ROULETTE).sqrt()
+                        } else {
+                            f * en.v_bar
+                        };
+                        out.push((s, f, en.q_bar * en.count / exposed, se));
                         continue;
                     }
                     let children = e
@@ -1517,14 +1551,20 @@ pub fn gather_lists(
                             cost.rays += seen.rays;
                             let v = Sight::Seen(seen.v, relative(seen.v, rays));
                             if let Some(child) = piece(c, v, fq, &mut cost) {
-                                stack.push(child);
+                                stack.push(Entry {
+                                    count: en.count,
+                                    ..child
+                                });
                             }
                         }
                     } else {
                         for c in children {
                             let v = Sight::Given(en.v, en.v_bar);
                             if let Some(child) = piece(c, v, open(c, None, &mut cost), &mut cost) {
-                                stack.push(child);
+                                stack.push(Entry {
+                                    count: en.count,
+                                    ..child
+                                });
                             }
                         }
                     }
@@ -1895,7 +1935,7 @@ mod tests {
             partial: false,
             tilt: link::Tilt::default(),
             vis: 1.0,
-            proved: true,
+            basis: link::Basis::Proved,
             open: 0.01,
         };
         let mut links = vec![Vec::new(); e.len()];

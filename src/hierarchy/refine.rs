@@ -201,6 +201,11 @@ impl Oracle<'_> {
 
     /// What to do with link `l` into `r`; `shadowed` is [`Oracle::shadowed`] of `r`.
     pub fn decide(&self, r: u32, l: &Link, shadowed: bool) -> Decision {
+        if l.basis == crate::hierarchy::link::Basis::Roulette {
+            // Stands for links the roulette dropped: refined, its pieces would be weighed
+            // as if it had been kept for certain.
+            return Decision::Keep;
+        }
         if shadowed && l.partial {
             return Decision::SplitReceiver;
         }
@@ -582,7 +587,7 @@ mod tests {
             partial: true,
             tilt: Tilt::new(t),
             vis,
-            proved: false,
+            basis: crate::hierarchy::link::Basis::Rays,
             open: 0.02,
         };
         let o = Oracle {
@@ -650,7 +655,7 @@ mod tests {
             partial: false,
             tilt: crate::hierarchy::link::Tilt::default(),
             vis: 1.0,
-            proved: false,
+            basis: crate::hierarchy::link::Basis::Rays,
             open: 0.1,
         };
         // Absolute: low = high = 1, mean 1.
@@ -720,7 +725,7 @@ mod tests {
             partial: false,
             tilt: crate::hierarchy::link::Tilt::default(),
             vis: 1.0,
-            proved: false,
+            basis: crate::hierarchy::link::Basis::Rays,
             open: 0.1,
         };
         let decide = |tol: Relative, b_r: f64| {
