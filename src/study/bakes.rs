@@ -271,8 +271,9 @@ pub struct Settings {
     /// ([`hierarchy::Settings::relative_low`], `relative_high`).
     pub relative: (f64, f64),
     /// Share of the link tolerance above which the final gather cuts a source into its
-    /// children ([`hierarchy::Settings::descend`]).
-    pub descend: f64,
+    /// children, and the floor of the receiver radiosity that cut is relative to
+    /// ([`hierarchy::Settings::descend`], [`hierarchy::Settings::descend_low`]).
+    pub descend: (f64, f64),
     /// Split receivers whose shadows vary across them by more than the tolerance
     /// ([`hierarchy::Settings::split_shadows`]).
     pub split_shadows: bool,
@@ -290,7 +291,7 @@ impl Settings {
             errors: vec![0.04, 0.02, 0.01, 0.005, 0.0025],
             rays: hierarchy::Settings::default().rays,
             relative: (hierarchy::RELATIVE_LOW, hierarchy::RELATIVE_HIGH),
-            descend: hierarchy::DESCEND,
+            descend: (hierarchy::DESCEND, hierarchy::DESCEND_LOW),
             split_shadows: hierarchy::SPLIT_SHADOWS,
             out,
         }
@@ -345,7 +346,8 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
             rays: s.rays,
             relative_low: s.relative.0,
             relative_high: s.relative.1,
-            descend: s.descend,
+            descend: s.descend.0,
+            descend_low: s.descend.1,
             split_shadows: s.split_shadows,
             ..Default::default()
         };
