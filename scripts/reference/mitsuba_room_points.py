@@ -31,7 +31,9 @@ import sys
 import tempfile
 
 import numpy as np
-import mitsuba as mi
+
+# Mitsuba is imported only to render (`main`), so that `--score` needs numpy alone.
+mi = None
 
 LIFT = 1e-4  # meter height above the surface (scene units, metres)
 VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"),
@@ -123,6 +125,8 @@ def main():
     ap.add_argument("--spp", type=int, default=8192)
     ap.add_argument("--runs", type=int, default=8)
     a = ap.parse_args()
+    global mi
+    import mitsuba as mi
     mi.set_variant("scalar_rgb")
     s = scene(read_ply(a.ply))
     words = open(a.points[0]).read().split() if a.points[0].endswith(".txt") else a.points
