@@ -795,6 +795,26 @@ fn judge(d: &Drawn, free: &[bool]) -> Seen {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The roulette keeps a hidden link with probability [`ROULETTE`], independently of
+    /// the pair and the same on every call: over 200,000 pairs the share kept is within 5
+    /// standard errors of 1/8 (a false alarm about once in 3.5 million runs), and two
+    /// seeds keep different pairs.
+    #[test]
+    fn the_roulette_keeps_one_link_in_eight() {
+        let n = 200_000u32;
+        let kept = (0..n)
+            .filter(|&k| roulette_keeps(1, k % 500, k / 500))
+            .count() as f64;
+        let se = (ROULETTE * (1.0 - ROULETTE) / f64::from(n)).sqrt();
+        let share = kept / f64::from(n);
+        assert!(
+            (share - ROULETTE).abs() < 5.0 * se,
+            "kept {share} of the links, expected {ROULETTE} ± {se}"
+        );
+        assert!((0..1000).all(|k| roulette_keeps(1, k, 7) == roulette_keeps(1, k, 7)));
+        assert!((0..1000).any(|k| roulette_keeps(1, k, 7) != roulette_keeps(2, k, 7)));
+    }
     use crate::mesh::Resolution;
     use crate::scene::Scene;
 

@@ -638,6 +638,18 @@ mod tests {
         assert!(!o.shadowed(0, &open));
         // A link within its tolerance on a receiver not shadowed is kept.
         assert_eq!(o.decide(0, &lined[0], false), Decision::Keep);
+        // A link kept by the roulette stands for links that were dropped: it is never
+        // refined, whatever its error or the receiver's shadows.
+        let roulette = Link {
+            f: 0.0,
+            vis: 0.0,
+            df: 10.0,
+            open: 10.0,
+            basis: crate::hierarchy::link::Basis::Roulette,
+            ..lined[0]
+        };
+        assert_eq!(o.decide(0, &roulette, true), Decision::Keep);
+        assert_eq!(o.decide(0, &roulette, false), Decision::Keep);
     }
 
     #[test]
