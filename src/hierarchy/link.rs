@@ -795,6 +795,8 @@ fn judge(d: &Drawn, free: &[bool]) -> Seen {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::mesh::Resolution;
+    use crate::scene::Scene;
 
     /// The roulette keeps a hidden link with probability [`ROULETTE`], independently of
     /// the pair and the same on every call: over 200,000 pairs the share kept is within 5
@@ -815,8 +817,6 @@ mod tests {
         assert!((0..1000).all(|k| roulette_keeps(1, k, 7) == roulette_keeps(1, k, 7)));
         assert!((0..1000).any(|k| roulette_keeps(1, k, 7) != roulette_keeps(2, k, 7)));
     }
-    use crate::mesh::Resolution;
-    use crate::scene::Scene;
 
     /// The pieces of a split source judged from the pair's own rays ([`Traced::pieces`])
     /// are unbiased: over 400 seeds their mean fractions match each piece's fraction from

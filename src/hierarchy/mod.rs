@@ -1337,11 +1337,14 @@ pub fn gather_lists(
                 let (eps_cut, k_cut) = cut.weights(b[li]);
                 // The leaf's side of every open factor it asks for (its Gauss nodes mapped once).
                 let near = std::cell::RefCell::new(link::Near::new(e, l));
-                let weight = |src: u32, x: &[[f64; 3]]| {
+                // `max over channels of k_c ρ_l x_c` for the source's values `x`, with the
+                // channel weights of the link tolerance (`k`) or of the source cut (`k_cut`).
+                let weighted = |k: &[f64; 3], src: u32, x: &[[f64; 3]]| {
                     (0..3)
                         .map(|c| k[c] * rho[li][c] * x[src as usize][c])
                         .fold(0.0, f64::max)
                 };
+                let weight = |src: u32, x: &[[f64; 3]]| weighted(&k, src, x);
                 let f_tol = |src: u32| {
                     let w = weight(src, b);
                     if w > 0.0 {
@@ -1374,64 +1377,67 @@ pub fn gather_lists(
                 let relative = |v: f64, rays: f64| fraction_se(v, rays) / v.max(1e-300);
                 // The entry for `src` of unoccluded factor `f` (with its error `q_err`,
                 // from `open`), its visibility as `v` says.
-                let piece = |src: u32, v: Sight, (f, q_err): (f64, f64), cost: &mut Cost| {
-                    if f <= 0.0 {
-                        return None;
-                    }
-                    // A partly buried leaf's rays from inside the solid are blocked as expected
-                    // (see `link::visible_fraction_partly`).
-                    // The rays are kept for the pieces of the source ([`link::Traced::pieces`]).
-                    let keep = |t: link::Traced, cost: &mut Cost| {
-                        let seen = t.seen();
-                        cost.rays += seen.rays;
-                        let mut kept = kept.borrow_mut();
-                        kept.push(t);
-                        (seen.v, relative(seen.v, n), Some(kept.len() as u32 - 1))
-                    };
-                    let trace = |cost: &mut Cost| {
-                        keep(link::traced(ctx, l, src, Some(f), e.partly[li]), cost)
-                    };
-                    let (v, v_bar, traced) = match v {
-                        Sight::Given(v, bar) => (v, bar, None),
-                        Sight::Seen(v, bar) => (v, bar, Some(NO_RAYS)),
-                        Sight::Trace => trace(cost),
-                        Sight::Again => keep(link::traced_again(ctx, l, src, Some(f)), cost),
-                        Sight::Check(v, bar) => {
-                            let seen = link::visible_fraction_n(ctx, l, src, CHECK_RAYS, Some(f));
-                            cost.rays += seen.rays;
-                            if seen.v >= 1.0 {
-                                // What the leaf knows of its own view is these `CHECK_RAYS²`
-                                // free rays, not the ancestor's: the bar is at least theirs.
-                                // Taking the fraction 1 when they all come out free (and
-                                // tracing otherwise) is biased high by `v^n (1 - v)` for a leaf
-                                // whose true fraction is `v` (at most 0.08 for n = 4), inside
-                                // that bar (0.15 relative for 4 free rays); with the
-                                // ancestor's bar alone, 21 leaves of the room with a sphere
-                                // summed their factors over 1 beyond 3 bars.
-                                (
-                                    v,
-                                    bar.max(relative(1.0, (CHECK_RAYS * CHECK_RAYS) as f64)),
-                                    None,
-                                )
-                            } else {
-                                trace(cost)
-                            }
+                // `count`: how many links the entry stands for ([`Entry::count`]).
+                let piece =
+                    |src: u32, v: Sight, (f, q_err): (f64, f64), count: f64, cost: &mut Cost| {
+                        if f <= 0.0 {
+                            return None;
                         }
+                        // A partly buried leaf's rays from inside the solid are blocked as expected
+                        // (see `link::visible_fraction_partly`).
+                        // The rays are kept for the pieces of the source ([`link::Traced::pieces`]).
+                        let keep = |t: link::Traced, cost: &mut Cost| {
+                            let seen = t.seen();
+                            cost.rays += seen.rays;
+                            let mut kept = kept.borrow_mut();
+                            kept.push(t);
+                            (seen.v, relative(seen.v, n), Some(kept.len() as u32 - 1))
+                        };
+                        let trace = |cost: &mut Cost| {
+                            keep(link::traced(ctx, l, src, Some(f), e.partly[li]), cost)
+                        };
+                        let (v, v_bar, traced) = match v {
+                            Sight::Given(v, bar) => (v, bar, None),
+                            Sight::Seen(v, bar) => (v, bar, Some(NO_RAYS)),
+                            Sight::Trace => trace(cost),
+                            Sight::Again => keep(link::traced_again(ctx, l, src, Some(f)), cost),
+                            Sight::Check(v, bar) => {
+                                let seen =
+                                    link::visible_fraction_n(ctx, l, src, CHECK_RAYS, Some(f));
+                                cost.rays += seen.rays;
+                                if seen.v >= 1.0 {
+                                    // What the leaf knows of its own view is these `CHECK_RAYS²`
+                                    // free rays, not the ancestor's: the bar is at least theirs.
+                                    // Taking the fraction 1 when they all come out free (and
+                                    // tracing otherwise) is biased high by `v^n (1 - v)` for a leaf
+                                    // whose true fraction is `v` (at most 0.08 for n = 4), inside
+                                    // that bar (0.15 relative for 4 free rays); with the
+                                    // ancestor's bar alone, 21 leaves of the room with a sphere
+                                    // summed their factors over 1 beyond 3 bars.
+                                    (
+                                        v,
+                                        bar.max(relative(1.0, (CHECK_RAYS * CHECK_RAYS) as f64)),
+                                        None,
+                                    )
+                                } else {
+                                    trace(cost)
+                                }
+                            }
+                        };
+                        let entry: Option<Entry> = (v > 0.0).then_some(Entry {
+                            src,
+                            f: f * v,
+                            v,
+                            v_bar,
+                            // The quadrature's own estimate: the integral stops at the looser of
+                            // the relative tolerance and `t`.
+                            q_bar: q_err * v,
+                            traced,
+                            open: f,
+                            count,
+                        });
+                        entry
                     };
-                    let entry: Option<Entry> = (v > 0.0).then_some(Entry {
-                        src,
-                        f: f * v,
-                        v,
-                        v_bar,
-                        // The quadrature's own estimate: the integral stops at the looser of
-                        // the relative tolerance and `t`.
-                        q_bar: q_err * v,
-                        traced,
-                        open: f,
-                        count: 1.0,
-                    });
-                    entry
-                };
                 // A partly buried leaf traces every entry: its rays from points inside the solid
                 // are blocked, so its traced factors are per whole area, and are divided by its
                 // exposed fraction below (a factor is per visible area).
@@ -1441,11 +1447,12 @@ pub fn gather_lists(
                     links[li]
                         .iter()
                         .filter_map(|k| {
-                            piece(k.src, Sight::Trace, open(k.src, None, &mut cost), &mut cost).map(
-                                |en| Entry {
-                                    count: stands_for(k),
-                                    ..en
-                                },
+                            piece(
+                                k.src,
+                                Sight::Trace,
+                                open(k.src, None, &mut cost),
+                                stands_for(k),
+                                &mut cost,
                             )
                         })
                         .collect()
@@ -1474,12 +1481,9 @@ pub fn gather_lists(
                                     k.src,
                                     Sight::Again,
                                     open(k.src, Some((k.open, k.err)), &mut cost),
+                                    stands_for(k),
                                     &mut cost,
                                 )
-                                .map(|en| Entry {
-                                    count: stands_for(k),
-                                    ..en
-                                })
                             }
                         })
                         .collect()
@@ -1510,11 +1514,9 @@ pub fn gather_lists(
                         } else {
                             Sight::Check(k.vis, bar)
                         };
-                        if let Some(en) = piece(k.src, v, open(k.src, None, &mut cost), &mut cost) {
-                            stack.push(Entry {
-                                count: stands_for(k),
-                                ..en
-                            });
+                        let fq = open(k.src, None, &mut cost);
+                        if let Some(en) = piece(k.src, v, fq, stands_for(k), &mut cost) {
+                            stack.push(en);
                         }
                     }
                     a = e.parent[a as usize];
@@ -1522,10 +1524,7 @@ pub fn gather_lists(
                 // Sources as fine as they are, where their radiosity varies.
                 while let Some(en) = stack.pop() {
                     let s = en.src;
-                    let varies = (0..3)
-                        .map(|c| k_cut[c] * rho[li][c] * spread[s as usize][c])
-                        .fold(0.0, f64::max);
-                    if e.is_leaf(s) || varies * en.open <= descend * eps_cut {
+                    if e.is_leaf(s) || weighted(&k_cut, s, spread) * en.open <= descend * eps_cut {
                         let f = en.f * en.count / exposed;
                         // A roulette entry's bar adds the roulette's own spread: the entry is
                         // `count` times the traced value, or nothing, so its variance is
@@ -1580,21 +1579,16 @@ pub fn gather_lists(
                             let Some((seen, rays)) = p else { continue };
                             cost.rays += seen.rays;
                             let v = Sight::Seen(seen.v, relative(seen.v, rays));
-                            if let Some(child) = piece(c, v, fq, &mut cost) {
-                                stack.push(Entry {
-                                    count: en.count,
-                                    ..child
-                                });
+                            if let Some(child) = piece(c, v, fq, en.count, &mut cost) {
+                                stack.push(child);
                             }
                         }
                     } else {
                         for c in children {
                             let v = Sight::Given(en.v, en.v_bar);
-                            if let Some(child) = piece(c, v, open(c, None, &mut cost), &mut cost) {
-                                stack.push(Entry {
-                                    count: en.count,
-                                    ..child
-                                });
+                            let fq = open(c, None, &mut cost);
+                            if let Some(child) = piece(c, v, fq, en.count, &mut cost) {
+                                stack.push(child);
                             }
                         }
                     }
