@@ -247,8 +247,10 @@ fn shadows_and_contacts_refine_and_refinement_stops_at_the_tolerance() {
     // The largest sum is often the noisiest leaf's (a partly buried leaf's bar includes the
     // error of the exposed fraction its factors are divided by), so the bars are checked
     // over all leaves: with calibrated bars and no bias, a one-sided 3-bar excess has
-    // probability 0.13%; at most 0.2% of the leaves may show it.
-    assert!(bar.magnitude() < 0.1, "bar {bar}");
+    // probability 0.13%; at most 0.2% of the leaves may show it. (A leaf's check of a
+    // source is its own 4 rays' estimate, unbiased and noisier than 16 rays': the largest
+    // sum's bar is about 0.11 here.)
+    assert!(bar.magnitude() < 0.15, "bar {bar}");
     let over = sol.report.rows_over_one;
     assert!(
         over * 500 <= sol.report.leaves,
