@@ -180,6 +180,10 @@ struct StudyBakesArgs {
     /// the mean (see `bake --descend-low`).
     #[arg(long, default_value_t = radiosity::hierarchy::DESCEND_LOW)]
     descend_low: f64,
+    /// Share of the source cut's tolerance above which the final gather cuts a source
+    /// the leaf's view weights otherwise than its area (see `bake --kernel-cut`).
+    #[arg(long, default_value_t = radiosity::hierarchy::KERNEL_CUT)]
+    kernel_cut: f64,
     /// Split receivers whose shadows vary across them by more than the tolerance (see
     /// `bake --split-shadows`).
     #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::SPLIT_SHADOWS { Switch::On } else { Switch::Off })]
@@ -390,6 +394,13 @@ struct HierarchyArgs {
     /// darkest face within 0.3% of a path tracer for 17% more rays (docs/HIERARCHY.md).
     #[arg(long, default_value_t = radiosity::hierarchy::DESCEND_LOW)]
     descend_low: f64,
+    /// Hierarchical: share of the source cut's tolerance above which the final gather
+    /// also cuts a source a leaf sees whole where its view weights the source's children
+    /// otherwise than their areas (four point factors per entry, no rays; 0: off). The
+    /// default takes every face of the Cornell box within 0.3% of a path tracer for 1.7
+    /// times the CPU time (docs/HIERARCHY.md).
+    #[arg(long, default_value_t = radiosity::hierarchy::KERNEL_CUT)]
+    kernel_cut: f64,
     /// Hierarchical: cap on refine-and-solve passes.
     #[arg(long, default_value_t = 8)]
     max_passes: usize,
@@ -853,6 +864,7 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
                 split_receivers: args.hier.split_receivers == Switch::On,
                 descend: args.hier.descend,
                 descend_low: args.hier.descend_low,
+                kernel_cut: args.hier.kernel_cut,
                 split_shadows: args.hier.split_shadows == Switch::On,
                 max_memory: args.est.max_memory,
                 ..Default::default()
@@ -984,7 +996,7 @@ fn study_bakes(args: &StudyBakesArgs) -> Result<()> {
         errors: args.errors.clone(),
         rays: args.link_rays,
         relative: (args.relative_low, args.relative_high),
-        descend: (args.descend, args.descend_low),
+        descend: (args.descend, args.descend_low, args.kernel_cut),
         split_shadows: args.split_shadows == Switch::On,
         ..bakes::Settings::full(args.output.clone())
     };

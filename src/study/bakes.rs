@@ -271,9 +271,10 @@ pub struct Settings {
     /// ([`hierarchy::Settings::relative_low`], `relative_high`).
     pub relative: (f64, f64),
     /// Share of the link tolerance above which the final gather cuts a source into its
-    /// children, and the floor of the receiver radiosity that cut is relative to
-    /// ([`hierarchy::Settings::descend`], [`hierarchy::Settings::descend_low`]).
-    pub descend: (f64, f64),
+    /// children, the floor of the receiver radiosity that cut is relative to, and the
+    /// share for the leaf's view of the children ([`hierarchy::Settings::descend`],
+    /// [`hierarchy::Settings::descend_low`], [`hierarchy::Settings::kernel_cut`]).
+    pub descend: (f64, f64, f64),
     /// Split receivers whose shadows vary across them by more than the tolerance
     /// ([`hierarchy::Settings::split_shadows`]).
     pub split_shadows: bool,
@@ -291,7 +292,11 @@ impl Settings {
             errors: vec![0.04, 0.02, 0.01, 0.005, 0.0025],
             rays: hierarchy::Settings::default().rays,
             relative: (hierarchy::RELATIVE_LOW, hierarchy::RELATIVE_HIGH),
-            descend: (hierarchy::DESCEND, hierarchy::DESCEND_LOW),
+            descend: (
+                hierarchy::DESCEND,
+                hierarchy::DESCEND_LOW,
+                hierarchy::KERNEL_CUT,
+            ),
             split_shadows: hierarchy::SPLIT_SHADOWS,
             out,
         }
@@ -348,6 +353,7 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
             relative_high: s.relative.1,
             descend: s.descend.0,
             descend_low: s.descend.1,
+            kernel_cut: s.descend.2,
             split_shadows: s.split_shadows,
             ..Default::default()
         };
