@@ -397,7 +397,7 @@ struct HierarchyArgs {
     /// Hierarchical: share of the source cut's tolerance above which the final gather
     /// also cuts a source a leaf sees whole where its view weights the source's children
     /// otherwise than their areas (four point factors per entry, no rays; 0: off). The
-    /// default takes every face of the Cornell box within 0.3% of a path tracer for 1.7
+    /// default takes every face of the Cornell box within 0.3% of a path tracer for 1.5
     /// times the CPU time (docs/HIERARCHY.md).
     #[arg(long, default_value_t = radiosity::hierarchy::KERNEL_CUT)]
     kernel_cut: f64,

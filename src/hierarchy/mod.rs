@@ -175,7 +175,7 @@ pub struct Settings {
     /// corner, more than the wall's mean), so the share is small; the range test of
     /// `descend` misses it where the radiosity varies smoothly. 0 turns it off. On the
     /// Cornell box at `--error 0.01` the default takes every face within 0.3% of the path
-    /// tracer (15 of 19 without) for the same rays and 1.7 times the CPU time
+    /// tracer (15 of 19 without) for the same rays and 1.5 times the CPU time
     /// (docs/HIERARCHY.md, *The sources' mean radiosity*).
     pub kernel_cut: f64,
     /// Per-element relative change at which the solve stops.
@@ -1307,9 +1307,9 @@ fn stands_for(k: &Link) -> f64 {
 /// with the leaf's own factor, down to where the error is below it or the source is a
 /// leaf.
 ///
-/// `descend` is `(share, low)`: the cut is judged against the leaf's tolerance relative to
-/// its own radiosity floored at `low` times the mean (capped at the mean), so that with
-/// `low` 1 it is the link tolerance itself ([`Settings::descend_low`]). An entry without
+/// `descend` is `(share, low, kernel)`: the cut is judged against the leaf's tolerance
+/// relative to its own radiosity floored at `low` times the mean (capped at the mean), so
+/// that with `low` 1 it is the link tolerance itself ([`Settings::descend_low`]). An entry without
 /// rays of its own is also cut where the leaf's view of the source's children moves its
 /// radiosity from their area mean by more than `kernel` times that tolerance
 /// ([`Settings::kernel_cut`], [`kernel_weighting_error`]).
