@@ -2082,6 +2082,51 @@ mod tests {
         (e, links)
     }
 
+    /// The kernel cut's estimate ([`kernel_weighting_error`]): 0 for a source of uniform
+    /// radiosity; large for a leaf beside the source's bright half, which it sees more
+    /// of than its area share; small for a leaf far away, whose view weights the
+    /// children as their areas do.
+    #[test]
+    fn the_kernel_cut_sees_what_a_near_leaf_weights_and_a_far_one_does_not() {
+        let mut e = Elements::default();
+        let floor = e.add_root(
+            Piece::Quad([DVec3::ZERO, DVec3::X, DVec3::new(1.0, 1.0, 0.0), DVec3::Y]),
+            DVec3::Z,
+        );
+        // Small wall leaves facing +x: one at the floor's edge, one 1000 away.
+        let wall = |x: f64, e: &mut Elements| {
+            let (lo, hi) = (0.45, 0.55);
+            e.add_root(
+                Piece::Quad([
+                    DVec3::new(x, hi, 0.05),
+                    DVec3::new(x, lo, 0.05),
+                    DVec3::new(x, lo, 0.15),
+                    DVec3::new(x, hi, 0.15),
+                ]),
+                DVec3::X,
+            )
+        };
+        let near = wall(0.0, &mut e) as usize;
+        let far = wall(-1000.0, &mut e) as usize;
+        let kids = e.split(floor);
+        let rho = vec![[0.5; 3]; e.len()];
+        let k = [1.0; 3];
+        let mut b = vec![[1.0; 3]; e.len()];
+        assert!(kernel_weighting_error(&e, near, floor, &b, &rho, &k) < 1e-12);
+        for &c in &kids {
+            if e.centre[c as usize].x < 0.5 {
+                b[c as usize] = [2.0; 3];
+            }
+        }
+        let (n, f) = (
+            kernel_weighting_error(&e, near, floor, &b, &rho, &k),
+            kernel_weighting_error(&e, far, floor, &b, &rho, &k),
+        );
+        // Near: the bright half holds most of what the leaf sees (the area share is 1/2).
+        assert!(n > 0.1 && n < 0.25, "near {n}");
+        assert!(f < 1e-3 * n, "far {f} against near {n}");
+    }
+
     #[test]
     fn settings_out_of_range_are_refused_by_name() {
         assert!(Settings::default().validate().is_ok());
