@@ -552,6 +552,11 @@ impl Traced {
         judge(&self.drawn, &self.free, None)
     }
 
+    /// Whether no ray was blocked (true where none was cast).
+    pub fn all_free(&self) -> bool {
+        self.free.iter().all(|&f| f)
+    }
+
     /// What the rays say of the pair, estimated without bias around `prior`, a visible
     /// fraction known from other rays ([`judge`]).
     pub fn seen_around(&self, prior: f64) -> Seen {
@@ -765,8 +770,8 @@ fn draw(
 /// unbiased for any `α` fixed before the rays are drawn (`E[Σ w_k] = n² m`), neither
 /// clamped nor set to 0 when every ray is blocked, and of least variance near `α = v`
 /// (the regression coefficient of `w V` on `w`; Glasserman, *Monte Carlo methods in
-/// financial engineering*, 2004, section 4.1). `α = 1` is the estimate above before its clamp; `α = 0`
-/// plain Monte Carlo, exactly 0 when every ray is blocked.
+/// financial engineering*, 2004, section 4.1). `α = 1` is the estimate above before its
+/// clamp; `α = 0` plain Monte Carlo, exactly 0 when every ray is blocked.
 fn judge(d: &Drawn, free: &[bool], prior: Option<f64>) -> Seen {
     let prior = prior.filter(|_| d.mean > 0.0 && !d.partly);
     if d.segs.is_empty() && !d.partly && prior.is_none() {

@@ -1309,8 +1309,8 @@ fn stands_for(k: &Link) -> f64 {
 ///
 /// `descend` is `(share, low, kernel)`: the cut is judged against the leaf's tolerance
 /// relative to its own radiosity floored at `low` times the mean (capped at the mean), so
-/// that with `low` 1 it is the link tolerance itself ([`Settings::descend_low`]). An entry without
-/// rays of its own is also cut where the leaf's view of the source's children moves its
+/// that with `low` 1 it is the link tolerance itself ([`Settings::descend_low`]). An
+/// entry without rays of its own is also cut where the leaf's view of the source's children moves its
 /// radiosity from their area mean by more than `kernel` times that tolerance
 /// ([`Settings::kernel_cut`], [`kernel_weighting_error`]).
 ///
@@ -1454,10 +1454,10 @@ pub fn gather_lists(
                                 // Russian roulette on more rays, unbiased too, was noisier
                                 // (docs/HIERARCHY.md, *Unbiased visible fractions*).
                                 let t = link::traced_n(ctx, l, src, CHECK_RAYS, Some(f));
-                                let (free, seen) = (t.seen(), t.seen_around(v));
+                                let seen = t.seen_around(v);
                                 cost.rays += seen.rays;
                                 let rays = (CHECK_RAYS * CHECK_RAYS) as f64;
-                                let v_bar = if free.v >= 1.0 {
+                                let v_bar = if t.all_free() && seen.rays > 0 {
                                     // What the leaf knows of its own view is these free rays,
                                     // not the ancestor's: the bar is at least theirs (with the
                                     // ancestor's bar alone, 21 leaves of the room with a sphere
