@@ -188,6 +188,10 @@ struct StudyBakesArgs {
     /// `bake --split-shadows`).
     #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::SPLIT_SHADOWS { Switch::On } else { Switch::Off })]
     split_shadows: Switch,
+    /// Seed of the hierarchical bakes' random streams (another seed shows how far the
+    /// scores move with the Monte Carlo visibility alone).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
 }
 
 #[derive(Args, Debug)]
@@ -998,6 +1002,7 @@ fn study_bakes(args: &StudyBakesArgs) -> Result<()> {
         relative: (args.relative_low, args.relative_high),
         descend: (args.descend, args.descend_low, args.kernel_cut),
         split_shadows: args.split_shadows == Switch::On,
+        seed: args.seed,
         ..bakes::Settings::full(args.output.clone())
     };
     let (runs, refs) = bakes::run(&settings)?;

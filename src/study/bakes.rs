@@ -278,6 +278,8 @@ pub struct Settings {
     /// Split receivers whose shadows vary across them by more than the tolerance
     /// ([`hierarchy::Settings::split_shadows`]).
     pub split_shadows: bool,
+    /// Seed of the hierarchical bakes' random streams ([`hierarchy::Settings::seed`]).
+    pub seed: u64,
     /// Output folder.
     pub out: PathBuf,
 }
@@ -298,6 +300,7 @@ impl Settings {
                 hierarchy::KERNEL_CUT,
             ),
             split_shadows: hierarchy::SPLIT_SHADOWS,
+            seed: hierarchy::Settings::default().seed,
             out,
         }
     }
@@ -355,6 +358,7 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
             descend_low: s.descend.1,
             kernel_cut: s.descend.2,
             split_shadows: s.split_shadows,
+            seed: s.seed,
             ..Default::default()
         };
         settings.validate()?;
