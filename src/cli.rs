@@ -260,9 +260,9 @@ struct StudyArgs {
 
 #[derive(Args, Debug)]
 struct MeshArgs {
-    /// Target number of patches (the edge length is chosen to get close to it); default
-    /// 1000. With `--method hierarchical` these are the root patches, and the default is
-    /// roots no longer than a quarter of the scene's diagonal.
+    /// Target number of patches (the edge length is chosen to get close to it). With a bake's
+    /// hierarchical method (its default) these are the root patches, and the default is
+    /// roots no longer than a quarter of the scene's diagonal; otherwise 1000.
     #[arg(long, conflicts_with = "max_edge")]
     patches: Option<usize>,
     /// Subdivide so that no patch edge is longer than this (scene units).
@@ -294,6 +294,12 @@ impl MeshArgs {
 /// How a bake solves for radiosity.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 enum MethodArg {
+    /// Hierarchical, unless the command line gives a setting only the flat method has
+    /// (--factors, --estimator, --samples, --rays, --tol, --replicates, --repair,
+    /// --solver, --steps, --two-sided), the bake runs on several MPI ranks, or the scene
+    /// has faces the hierarchy does not support (two-sided ones, or a closed room's faces
+    /// pointing out of it): then flat, and the summary says why.
+    Auto,
     /// Form factors between every pair of patches of a uniform mesh, then a matrix solver.
     Flat,
     /// Hierarchical radiosity: elements and links refined where the light needs them.
@@ -346,7 +352,7 @@ impl From<ClusterArg> for radiosity::hierarchy::Clustering {
 #[derive(Args, Debug)]
 struct HierarchyArgs {
     /// Radiosity method.
-    #[arg(long, value_enum, default_value_t = MethodArg::Flat)]
+    #[arg(long, value_enum, default_value_t = MethodArg::Auto)]
     method: MethodArg,
     /// Hierarchical: link tolerance, relative to the receiver's radiosity (taken between
     /// --relative-low and --relative-high times the scene's mean radiosity).
@@ -792,6 +798,39 @@ fn parse_exposure(s: &str) -> Result<Exposure> {
 /// silently ignored.
 const ESTIMATOR_FLAGS: [&str; 5] = ["estimator", "samples", "rays", "tol", "replicates"];
 
+/// Settings of the flat method's matrix that the hierarchical method has no use for
+/// (beyond [`ESTIMATOR_FLAGS`]): given, they make `--method auto` flat, and are refused
+/// with `--method hierarchical`.
+const MATRIX_FLAGS: [&str; 4] = ["factors", "repair", "solver", "steps"];
+
+/// Whether the argument `id` was given on the command line (not taken by default).
+fn given(m: &clap::ArgMatches, id: &str) -> bool {
+    use clap::parser::ValueSource;
+    matches!(
+        m.try_get_raw(id).map(|_| m.value_source(id)),
+        Ok(Some(ValueSource::CommandLine))
+    )
+}
+
+/// The method a bake runs: `--method` as given, or for `auto` hierarchical unless the
+/// command line (`m`) asks for the flat method's settings, two-sided faces, or several
+/// ranks.
+fn resolve_method(method: MethodArg, m: &clap::ArgMatches, ranks: usize) -> MethodArg {
+    if method != MethodArg::Auto {
+        return method;
+    }
+    let flat = ESTIMATOR_FLAGS
+        .iter()
+        .chain(&MATRIX_FLAGS)
+        .chain(&["two_sided"])
+        .any(|id| given(m, id));
+    if flat || ranks > 1 {
+        MethodArg::Flat
+    } else {
+        MethodArg::Hierarchical
+    }
+}
+
 /// Refuses, before any work, flags that the rest of the command line makes meaningless:
 /// estimator flags with a stored matrix (`factors`) or with the hierarchical method.
 fn check_meaningless(
@@ -799,13 +838,7 @@ fn check_meaningless(
     hierarchical: bool,
     m: &clap::ArgMatches,
 ) -> Result<()> {
-    use clap::parser::ValueSource;
-    let given = |id: &str| {
-        matches!(
-            m.try_get_raw(id).map(|_| m.value_source(id)),
-            Ok(Some(ValueSource::CommandLine))
-        )
-    };
+    let given = |id: &str| given(m, id);
     if let Some(dir) = factors {
         for id in ESTIMATOR_FLAGS.iter().chain(&["seed"]) {
             if given(id) {
@@ -834,11 +867,21 @@ fn check_meaningless(
                 );
             }
         }
+        for id in MATRIX_FLAGS.iter().filter(|&&id| id != "factors") {
+            if given(id) {
+                bail!(
+                    "--{id} sets the flat method's matrix solve and has no effect with \
+                     --method hierarchical (it gathers over its links, with --tolerance \
+                     and --max-iterations): drop --{id}, or give --method flat"
+                );
+            }
+        }
     }
     Ok(())
 }
 
-fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
+/// Bakes with `method` (resolved from `--method`; `auto` when it was chosen by default).
+fn bake(args: &BakeArgs, method: MethodArg, auto: bool, cluster: &dyn Cluster) -> Result<()> {
     args.est.init_threads()?;
     if !(args.tolerance > 0.0 && args.tolerance < 1.0) {
         bail!("--tolerance must be in (0, 1), got {}", args.tolerance);
@@ -848,8 +891,8 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
             bail!("--floor must be a finite number >= 0, got {f}");
         }
     }
-    let hierarchy = match args.hier.method {
-        MethodArg::Flat => None,
+    let hierarchy = match method {
+        MethodArg::Flat | MethodArg::Auto => None,
         MethodArg::Hierarchical => {
             let h = radiosity::hierarchy::Settings {
                 error: args.hier.error,
@@ -882,6 +925,10 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
             .mesh
             .resolution_or(Resolution::DiagonalFraction(0.25))?,
         None => args.mesh.resolution()?,
+    };
+    let fallback = match (&hierarchy, auto) {
+        (Some(_), true) => Some(args.mesh.resolution()?),
+        _ => None,
     };
     if !(1..=MAX_ITERATIONS).contains(&args.max_iterations) {
         bail!(
@@ -918,6 +965,7 @@ fn bake(args: &BakeArgs, cluster: &dyn Cluster) -> Result<()> {
         repair: args.est.repair,
         max_memory: args.est.max_memory,
         hierarchy,
+        fallback,
         two_sided: args.two_sided,
         lightmap: args.lightmap,
     };
@@ -1160,11 +1208,13 @@ fn run_mpi(cli: &Cli, matches: &clap::ArgMatches) -> Result<()> {
 fn dispatch(cli: &Cli, matches: &clap::ArgMatches, cluster: &dyn Cluster) -> Result<()> {
     match &cli.command {
         Command::Bake(args) => {
-            if let Some(("bake", m)) = matches.subcommand() {
-                let hierarchical = args.hier.method == MethodArg::Hierarchical;
-                check_meaningless(args.factors.as_deref(), hierarchical, m)?;
-            }
-            bake(args, cluster)
+            let Some(m) = matches.subcommand_matches("bake") else {
+                bail!("internal error: the bake command's arguments were not parsed")
+            };
+            let method = resolve_method(args.hier.method, m, cluster.size());
+            let hierarchical = method == MethodArg::Hierarchical;
+            check_meaningless(args.factors.as_deref(), hierarchical, m)?;
+            bake(args, method, args.hier.method == MethodArg::Auto, cluster)
         }
         Command::Thermal(args) => {
             if let Some(("thermal", m)) = matches.subcommand() {

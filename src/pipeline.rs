@@ -136,6 +136,10 @@ pub struct BakeConfig {
     /// Solve hierarchically with these settings instead of on the flat patch matrix
     /// ([`crate::hierarchy`]); `resolution` then sets the root patches.
     pub hierarchy: Option<hierarchy::Settings>,
+    /// With `hierarchy` chosen by default rather than asked for: the flat bake's
+    /// resolution, to bake with instead (and say so) where the scene has faces the
+    /// hierarchy does not support (two-sided, or a closed room's faces pointing out).
+    pub fallback: Option<Resolution>,
     /// Memory the run may plan to use, in bytes (`None`: what the system has available);
     /// a larger estimate is refused before any work ([`crate::budget`]).
     pub max_memory: Option<u64>,
@@ -174,6 +178,7 @@ impl Default for BakeConfig {
             steps: Vec::new(),
             repair: Repair::None,
             hierarchy: None,
+            fallback: None,
             max_memory: None,
             camera: None,
             units: None,
@@ -602,14 +607,44 @@ fn bake_gathered(
         Some(res) => output::lightmap::check(&scene, res)?,
         None => Vec::new(),
     };
-    if cfg.hierarchy.is_some() {
-        check_hierarchical(&scene)?;
-    }
+    // A scene the default hierarchy cannot bake is baked flat, and the summary says why.
+    let flat;
+    let cfg = match (
+        cfg.hierarchy.is_some(),
+        check_hierarchical(&scene),
+        cfg.fallback,
+    ) {
+        (true, Err(Error::Config(why)), Some(resolution)) => {
+            early.push(format!(
+                "baked with the flat method (uniform patches), as the default hierarchical \
+                 method cannot bake this scene: {why}"
+            ));
+            flat = BakeConfig {
+                hierarchy: None,
+                fallback: None,
+                resolution,
+                ..cfg.clone()
+            };
+            &flat
+        }
+        (true, Err(e), _) => return Err(e),
+        _ => cfg,
+    };
     for w in &early {
         obs.warn(w);
     }
     early.extend(early_warnings(&scene, obs));
     if let Some(h) = &cfg.hierarchy {
+        // The roots and the preview, before they are meshed (the hierarchy checks its own
+        // links and gather against the memory as it goes).
+        check_budget(
+            &scene,
+            cfg.resolution,
+            None,
+            None,
+            Some(cfg.preview),
+            cfg.max_memory,
+        )?;
         return bake_hierarchical(cfg, h, scene, early, timer).map(Some);
     }
     check_budget(

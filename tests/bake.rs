@@ -133,3 +133,74 @@ fn a_room_with_outward_normals_is_warned_about_with_the_fix() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `--method auto` (the default) bakes hierarchically unless the command line gives a
+/// setting of the flat method's, or the scene has faces the hierarchy does not support;
+/// `--method hierarchical` refuses those settings by name.
+#[test]
+fn the_default_method_is_hierarchical_unless_the_flat_one_is_asked_for() {
+    let dir = temp_dir("method");
+    std::fs::create_dir_all(&dir).expect("dir");
+    let run = |args: &[&str], out: &str| {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_radiosity"))
+            .args(["bake"])
+            .args(args)
+            .args(["--size", "16x16", "-o"])
+            .arg(dir.join(out))
+            .output()
+            .expect("binary runs");
+        let text =
+            String::from_utf8_lossy(&o.stdout).into_owned() + &String::from_utf8_lossy(&o.stderr);
+        assert!(!text.contains("panicked"), "{text}");
+        (o.status.success(), text)
+    };
+    let coarse = ["--patches", "12", "--error", "0.2", "--max-passes", "2"];
+    let (ok, text) = run(&[&["cube"][..], &coarse].concat(), "auto");
+    assert!(ok && text.contains("baked `cube` hierarchically"), "{text}");
+    for flat in [
+        &["--estimator", "hemisphere"][..],
+        &["--solver", "jacobi"],
+        &["--repair", "closure"],
+        &["--steps", "1"],
+        &["--two-sided"],
+        &["--method", "flat"],
+    ] {
+        let (ok, text) = run(&[&["cube", "--patches", "12"][..], flat].concat(), "flat");
+        assert!(ok, "{flat:?}: {text}");
+        assert!(
+            text.contains("baked `cube`: ") && !text.contains("hierarchically"),
+            "{flat:?}: {text}"
+        );
+    }
+    for (flag, value) in [("--solver", "jacobi"), ("--estimator", "hemisphere")] {
+        let (ok, text) = run(&["cube", "--method", "hierarchical", flag, value], "no");
+        assert!(
+            !ok && text.contains(&format!("{flag} sets the flat")),
+            "{text}"
+        );
+    }
+    // A two-sided material: flat, with a warning naming why.
+    std::fs::write(
+        dir.join("m.mtl"),
+        "newmtl wall\nKd 0.5 0.5 0.5\n#@two-sided\nnewmtl lamp\nKe 1 1 1\n",
+    )
+    .expect("mtl");
+    std::fs::write(
+        dir.join("room.obj"),
+        "mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 1 0 1\nv 0 0 1\n\
+         v 0.4 0.9 0.4\nv 0.6 0.9 0.4\nv 0.6 0.9 0.6\nv 0.4 0.9 0.6\n\
+         usemtl wall\nf 1 4 3 2\nusemtl lamp\nf 5 6 7 8\n",
+    )
+    .expect("obj");
+    let scene = dir.join("room.obj");
+    let scene = scene.to_str().expect("utf-8 path");
+    let (ok, text) = run(&[scene, "--patches", "12"], "two-sided");
+    assert!(ok, "{text}");
+    assert!(
+        text.contains("baked with the flat method") && text.contains("two-sided"),
+        "{text}"
+    );
+    let (ok, text) = run(&[scene, "--method", "hierarchical"], "refused");
+    assert!(!ok && text.contains("does not support two-sided"), "{text}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -108,7 +108,16 @@ fn radiosity_of(dir: &Path) -> Vec<[f32; 3]> {
 #[test]
 fn distributed_bake_is_the_single_process_bake() {
     let dir = temp_dir("bake");
-    let common = ["bake", "cornell", "--patches", "300", "--size", "64x64"];
+    let common = [
+        "bake",
+        "cornell",
+        "--method",
+        "flat",
+        "--patches",
+        "300",
+        "--size",
+        "64x64",
+    ];
     let run_single = |name: &str, extra: &[&str]| {
         let out = dir.join(name);
         let mut args: Vec<&str> = common.to_vec();

@@ -90,7 +90,17 @@ fn runs_too_large_are_refused_before_any_work() {
         &["50000000 patches", "--patches", "--max-memory"],
     );
     refused(
-        &["bake", "--patches", "2000", "--max-memory", "64M", "-o", o],
+        &[
+            "bake",
+            "--method",
+            "flat",
+            "--patches",
+            "2000",
+            "--max-memory",
+            "64M",
+            "-o",
+            o,
+        ],
         &["more than the 0.06 GiB --max-memory", "--patches"],
     );
     refused(
@@ -145,7 +155,16 @@ fn a_write_that_fails_midway_leaves_the_previous_folder_whole() {
     for (kind, args) in [
         (
             "bake",
-            vec!["bake", "cornell", "--patches", "100", "--size", "64x64"],
+            vec![
+                "bake",
+                "cornell",
+                "--method",
+                "flat",
+                "--patches",
+                "100",
+                "--size",
+                "64x64",
+            ],
         ),
         ("factors", vec!["factors", "cornell", "--patches", "100"]),
     ] {
@@ -310,6 +329,8 @@ fn the_preview_camera_is_set_on_the_command_line_and_checked() {
         let mut args = vec![
             "bake",
             "cornell",
+            "--method",
+            "flat",
             "--patches",
             "100",
             "--size",
