@@ -296,7 +296,7 @@ impl MeshArgs {
 enum MethodArg {
     /// Hierarchical, unless the command line gives a setting only the flat method has
     /// (--factors, --estimator, --samples, --rays, --tol, --replicates, --repair,
-    /// --solver, --steps, --two-sided), the bake runs on several MPI ranks, or the scene
+    /// --solver, --steps, --floor, --keep-partial, --two-sided), the bake runs on several MPI ranks, or the scene
     /// has faces the hierarchy does not support (two-sided ones, or a closed room's faces
     /// pointing out of it): then flat, and the summary says why.
     Auto,
@@ -801,7 +801,14 @@ const ESTIMATOR_FLAGS: [&str; 5] = ["estimator", "samples", "rays", "tol", "repl
 /// Settings of the flat method's matrix that the hierarchical method has no use for
 /// (beyond [`ESTIMATOR_FLAGS`]): given, they make `--method auto` flat, and are refused
 /// with `--method hierarchical`.
-const MATRIX_FLAGS: [&str; 4] = ["factors", "repair", "solver", "steps"];
+const MATRIX_FLAGS: [&str; 6] = [
+    "factors",
+    "repair",
+    "solver",
+    "steps",
+    "floor",
+    "keep_partial",
+];
 
 /// Whether the argument `id` was given on the command line (not taken by default).
 fn given(m: &clap::ArgMatches, id: &str) -> bool {
