@@ -296,9 +296,9 @@ impl MeshArgs {
 enum MethodArg {
     /// Hierarchical, unless the command line gives a setting only the flat method has
     /// (--factors, --estimator, --samples, --rays, --tol, --replicates, --repair,
-    /// --solver, --steps, --floor, --keep-partial, --two-sided), the bake runs on several MPI ranks, or the scene
-    /// has faces the hierarchy does not support (two-sided ones, or a closed room's faces
-    /// pointing out of it): then flat, and the summary says why.
+    /// --solver, --steps, --floor, --keep-partial, --two-sided), the bake runs on several
+    /// MPI ranks, or the scene has faces the hierarchy does not support (two-sided ones,
+    /// or a closed room's faces pointing out of it): then flat, and the summary says why.
     Auto,
     /// Form factors between every pair of patches of a uniform mesh, then a matrix solver.
     Flat,
@@ -839,7 +839,8 @@ fn resolve_method(method: MethodArg, m: &clap::ArgMatches, ranks: usize) -> Meth
 }
 
 /// Refuses, before any work, flags that the rest of the command line makes meaningless:
-/// estimator flags with a stored matrix (`factors`) or with the hierarchical method.
+/// estimator flags with a stored matrix (`factors`), and the flat method's flags
+/// ([`ESTIMATOR_FLAGS`], [`MATRIX_FLAGS`]) with the hierarchical method.
 fn check_meaningless(
     factors: Option<&std::path::Path>,
     hierarchical: bool,
