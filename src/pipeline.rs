@@ -644,7 +644,14 @@ fn bake_gathered(
             None,
             Some(cfg.preview),
             cfg.max_memory,
-        )?;
+        )
+        .map_err(|e| match e {
+            Error::Config(m) => Error::Config(format!(
+                "{m} (an estimate for the hierarchy's root patches alone: its elements and \
+                 links need more, and are checked as they grow)"
+            )),
+            e => e,
+        })?;
         return bake_hierarchical(cfg, h, scene, early, timer).map(Some);
     }
     check_budget(
