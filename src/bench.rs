@@ -1220,11 +1220,12 @@ mod tests {
         formfactor::compute(&ctx, est.as_ref(), &|_| {});
         assert_eq!(vis.query_seconds(), 0.0);
         vis.time_queries(true);
-        let cpu = crate::cluster::cpu_seconds();
+        // (Not checked against the process's CPU time: other tests' threads that exit
+        // meanwhile take theirs out of it, `crate::cluster::cpu_seconds`.)
         formfactor::compute(&ctx, est.as_ref(), &|_| {});
-        let (q, cpu) = (vis.query_seconds(), crate::cluster::cpu_seconds() - cpu);
+        let q = vis.query_seconds();
         vis.time_queries(false);
-        assert!(q > 0.0 && cpu > 0.0, "query {q} s, cpu {cpu} s");
+        assert!(q > 0.0, "query {q} s");
         assert_eq!(
             vis.query_seconds(),
             0.0,
