@@ -609,12 +609,12 @@ fn bake_gathered(
     };
     // A scene the default hierarchy cannot bake is baked flat, and the summary says why.
     let flat;
-    let cfg = match (
-        cfg.hierarchy.is_some(),
-        check_hierarchical(&scene),
-        cfg.fallback,
-    ) {
-        (true, Err(Error::Config(why)), Some(resolution)) => {
+    let checked = match cfg.hierarchy {
+        Some(_) => check_hierarchical(&scene),
+        None => Ok(()),
+    };
+    let cfg = match (checked, cfg.fallback) {
+        (Err(Error::Config(why)), Some(resolution)) => {
             early.push(format!(
                 "baked with the flat method (uniform patches), as the default hierarchical \
                  method cannot bake this scene: {why}"
@@ -627,8 +627,8 @@ fn bake_gathered(
             };
             &flat
         }
-        (true, Err(e), _) => return Err(e),
-        _ => cfg,
+        (Err(e), _) => return Err(e),
+        (Ok(()), _) => cfg,
     };
     for w in &early {
         obs.warn(w);
