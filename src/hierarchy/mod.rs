@@ -150,7 +150,8 @@ pub struct Settings {
     /// than `quadrature` (set it tiny for factors to full precision everywhere).
     pub accuracy: f64,
     /// Share of the link tolerance that a link whose rays were all blocked may carry and
-    /// go to Russian roulette instead of being refined ([`link::Basis::Roulette`]).
+    /// be kept unrefined, gathered by Russian roulette ([`link::Basis::Roulette`]), instead
+    /// of being refined.
     pub hide: f64,
     /// Share of the link tolerance above which the final gather replaces a split source
     /// by its children, and a cluster source by its sub-clusters ([`gather_lists`]).
@@ -1276,20 +1277,24 @@ struct Entry {
     /// The unoccluded factor: what decides whether the source is cut into pieces (not the
     /// traced estimate, whose noise would then pick which entries are kept).
     open: f64,
-    /// How many links the entry stands for: `1 / ROULETTE` for one that comes from a link
-    /// kept by Russian roulette ([`link::Basis::Roulette`]), else 1.
+    /// How many entries the entry stands for: `1 / ROULETTE` for one that the leaf's
+    /// Russian roulette kept ([`link::Basis::Roulette`], [`stands_for`]), else 1.
     count: f64,
     /// The prior its visibility was traced around ([`Sight::Trace`]), for the pieces of
     /// the source judged from the same rays.
     prior: f64,
 }
 
-/// How many links the link `k` stands for ([`Entry::count`]).
-fn stands_for(k: &Link) -> f64 {
-    if k.basis == link::Basis::Roulette {
-        1.0 / link::ROULETTE
+/// How many entries leaf `l`'s entry for the link `k` stands for ([`Entry::count`]): for a
+/// hidden link ([`link::Basis::Roulette`]) `1 / ROULETTE` when the leaf's roulette keeps
+/// it, else `None` (no entry); 1 for any other link.
+fn stands_for(k: &Link, l: u32, seed: u64) -> Option<f64> {
+    if k.basis != link::Basis::Roulette {
+        Some(1.0)
+    } else if link::roulette_keeps(seed, l, k.src) {
+        Some(1.0 / link::ROULETTE)
     } else {
-        1.0
+        None
     }
 }
 
@@ -1495,11 +1500,12 @@ pub fn gather_lists(
                     links[li]
                         .iter()
                         .filter_map(|k| {
+                            let count = stands_for(k, l, ctx.seed)?;
                             piece(
                                 k.src,
                                 Sight::Trace(k.vis),
                                 open(k.src, None, &mut cost),
-                                stands_for(k),
+                                count,
                                 &mut cost,
                             )
                         })
@@ -1526,11 +1532,12 @@ pub fn gather_lists(
                                     prior: k.vis,
                                 })
                             } else {
+                                let count = stands_for(k, l, ctx.seed)?;
                                 piece(
                                     k.src,
                                     Sight::Again(k.vis),
                                     open(k.src, Some((k.open, k.err)), &mut cost),
-                                    stands_for(k),
+                                    count,
                                     &mut cost,
                                 )
                             }
@@ -1563,8 +1570,11 @@ pub fn gather_lists(
                         } else {
                             Sight::Check(k.vis, bar)
                         };
+                        let Some(count) = stands_for(k, l, ctx.seed) else {
+                            continue;
+                        };
                         let fq = open(k.src, None, &mut cost);
-                        if let Some(en) = piece(k.src, v, fq, stands_for(k), &mut cost) {
+                        if let Some(en) = piece(k.src, v, fq, count, &mut cost) {
                             stack.push(en);
                         }
                     }

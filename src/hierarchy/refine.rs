@@ -202,8 +202,8 @@ impl Oracle<'_> {
     /// What to do with link `l` into `r`; `shadowed` is [`Oracle::shadowed`] of `r`.
     pub fn decide(&self, r: u32, l: &Link, shadowed: bool) -> Decision {
         if l.basis == crate::hierarchy::link::Basis::Roulette {
-            // Stands for links the roulette dropped: refined, its pieces would be weighed
-            // as if it had been kept for certain.
+            // Hidden within the hide share: its leaves gather it by Russian roulette;
+            // refining it would spend rays on light the tolerance lets go.
             return Decision::Keep;
         }
         if shadowed && l.partial {
@@ -638,8 +638,8 @@ mod tests {
         assert!(!o.shadowed(0, &open));
         // A link within its tolerance on a receiver not shadowed is kept.
         assert_eq!(o.decide(0, &lined[0], false), Decision::Keep);
-        // A link kept by the roulette stands for links that were dropped: it is never
-        // refined, whatever its error or the receiver's shadows.
+        // A hidden link gathered by Russian roulette is never refined, whatever its error
+        // or the receiver's shadows.
         let roulette = Link {
             f: 0.0,
             vis: 0.0,
