@@ -565,7 +565,7 @@ impl Traced {
     }
 
     /// What the rays say of the pair, estimated without bias around `prior`, a visible
-    /// fraction known from other rays ([`judge`]).
+    /// fraction known from other rays (`judge` in this module).
     pub fn seen_around(&self, prior: f64) -> Seen {
         judge(&self.drawn, &self.free, Some(prior))
     }

@@ -1317,7 +1317,7 @@ fn stands_for(k: &Link, l: u32, seed: u64) -> Option<f64> {
 /// that with `low` 1 it is the link tolerance itself ([`Settings::descend_low`]). An
 /// entry without rays of its own is also cut where the leaf's view of the source's children moves its
 /// radiosity from their area mean by more than `kernel` times that tolerance
-/// ([`Settings::kernel_cut`], [`kernel_weighting_error`]).
+/// ([`Settings::kernel_cut`], `kernel_weighting_error`).
 ///
 /// Factors are integrated to `accuracy × ε_l / (ρ_l B_s)` (as in `tolerances`). Returns
 /// the lists and the work spent.
