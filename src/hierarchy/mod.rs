@@ -1522,7 +1522,7 @@ pub fn gather_lists(
                             if k.basis == link::Basis::Proved {
                                 Some(Entry {
                                     src: k.src,
-                                    f: k.f,
+                                    f: k.f(),
                                     v: k.vis,
                                     v_bar: 0.0,
                                     q_bar: k.err,
@@ -1554,7 +1554,7 @@ pub fn gather_lists(
                         // box sees less of the wall behind it than its parent): unless the
                         // blockers' proof holds for the ancestor's link (then for every piece of
                         // the pair) or for the leaf itself, it checks its own.
-                        let bar = if k.f > 0.0 { k.se / k.f } else { 0.0 };
+                        let bar = if k.f() > 0.0 { k.se / k.f() } else { 0.0 };
                         let v = if k.partial || partly || k.basis == link::Basis::Roulette {
                             Sight::Trace(k.vis)
                         } else if k.basis == link::Basis::Proved
@@ -2077,7 +2077,6 @@ mod tests {
         }
         let link = Link {
             src: 0,
-            f: 0.01,
             err: 0.0,
             se: 0.0,
             df: 0.0,

@@ -580,7 +580,6 @@ mod tests {
         let spread = vec![[0.0; 3]];
         let piece = |t: [f64; 2], vis: f64| Link {
             src: 0,
-            f: 0.02 * vis,
             err: 0.0,
             se: 0.0,
             df: 0.02,
@@ -641,7 +640,6 @@ mod tests {
         // A hidden link gathered by Russian roulette is never refined, whatever its error
         // or the receiver's shadows.
         let roulette = Link {
-            f: 0.0,
             vis: 0.0,
             df: 10.0,
             open: 10.0,
@@ -660,7 +658,6 @@ mod tests {
         let spread = vec![[0.0; 3]];
         let link = Link {
             src: 0,
-            f: 0.1,
             err: 0.0,
             se: 0.0,
             df: 0.2,
@@ -730,7 +727,6 @@ mod tests {
         let spread = vec![[0.0; 3]; 5];
         let link = Link {
             src: 2,
-            f: 0.1,
             err: 0.0,
             se: 0.0,
             df: 0.015,

@@ -298,7 +298,7 @@ pub fn solve_push(
             for l in &links[p] {
                 let bs = state.b[l.src as usize];
                 for c in 0..3 {
-                    s[c] += l.f * bs[c];
+                    s[c] += l.f() * bs[c];
                 }
             }
             if let Some(h) = from_clusters.get(p) {
