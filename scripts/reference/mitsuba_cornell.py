@@ -26,13 +26,21 @@ direct irradiance from the light (max_depth 2) at points against the exact point
 factor (Lambert's contour formula), the face route against the point route on a 1 mm
 square, and Mitsuba's irradiancemeter on the floor against the face route.
 
+`--refine-faces MULT --seed S` measures the face averages of the table at `--out` again,
+independently (seed S, which the table must not have used), with MULT times the table's
+first run's samples per face and run, and combines the two by sample count (a mean of
+both estimates weighted by their samples; its standard error from both); the probe
+points are kept as they are.
+
     python3 scripts/reference/mitsuba_cornell.py --budget 1900   # -> docs/reference/cornell-mitsuba.csv
+    python3 scripts/reference/mitsuba_cornell.py --refine-faces 6 --seed 2 --threads 2
     python3 scripts/reference/mitsuba_cornell.py --check
 """
 import argparse
 import csv
 import math
 import os
+import re
 import struct
 import sys
 import tempfile
@@ -481,6 +489,69 @@ def run(faces, probes, args, tmp, log):
              "point_spp": point_spp, "samples": total, "passes": plan.passes})
 
 
+def refine_faces(faces, args, tmp, log):
+    """`--refine-faces`: the table's face rows measured again with a new seed and combined
+    with what they hold by sample count. Seeds follow `run` (base 1e9 * (seed % 4)), the
+    cameras numbered from 0 (no radiancemeters in the scene)."""
+    with open(args.out, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+        fields = list(rows[0].keys())
+    old = {int(r["id"]): r for r in rows if r["kind"] == "face"}
+    if sorted(old) != [f["id"] for f in faces]:
+        sys.exit(f"{args.out}: its face rows do not match the faces of {args.scene}")
+    # Each face's note lists its runs, "N samples x R runs[, seed S]" (a table made by
+    # `run` names no seed: it is --seed's default, 1).
+    parts, seeds = {}, {}
+    for i, r in old.items():
+        runs = re.findall(r"(\d+) samples x (\d+) runs(?:, seed (\d+))?", r["note"])
+        if not runs:
+            sys.exit(f"{args.out}: face {i}: no sample count in its note")
+        parts[i] = [(int(n), int(k)) for n, k, _ in runs]
+        seeds[i] = [int(sd) if sd else 1 for _, _, sd in runs]
+        if args.seed % 4 in [x % 4 for x in seeds[i]]:
+            sys.exit(f"{args.out}: face {i} already holds runs of seeds {seeds[i]} (taken "
+                     f"modulo 4); choose another --seed")
+    samples = [int(parts[f["id"]][0][0] * args.refine_faces) for f in faces]
+    plan = FacePlan(faces, samples, args.pmax, 0)
+    scene = build(faces, [], tmp, plan.cams)
+    res = np.zeros((args.runs, len(faces), 3))
+    counts = np.zeros((args.runs, len(faces)), dtype=np.int64)
+    t = time.time()
+    for r in range(args.runs):
+        res[r], counts[r] = plan.run(scene, faces, 1_000_000_000 * (args.seed % 4)
+                                     + 10_000_000 * (r + 1))
+        log(f"run {r + 1}/{args.runs} done, {time.time() - t:.0f} s")
+    m1 = res.mean(0)
+    s1 = res.std(0, ddof=1) / math.sqrt(args.runs)
+    g = lambda v: f"{v + 0.0:.6g}"
+    for f in faces:
+        i, r = f["id"], old[f["id"]]
+        m0 = np.array([float(r[k]) for k in ("B_r", "B_g", "B_b")])
+        s0 = np.array([float(r[k]) for k in ("se_r", "se_g", "se_b")])
+        n0 = sum(n * k for n, k in parts[i])
+        n1 = counts[:, i].sum()
+        w = n1 / (n0 + n1)
+        m = (1 - w) * m0 + w * m1[i]
+        s = np.sqrt(((1 - w) * s0) ** 2 + (w * s1[i]) ** 2)
+        z = (m1[i] - m0) / np.sqrt(s0 ** 2 + s1[i] ** 2)
+        log(f"face {i:2d} {f['object']:12s} new/old - 1 = "
+            + " ".join(f"{100 * (a / b - 1):+.3f}%" for a, b in zip(m1[i], m0))
+            + f" ({' '.join(f'{x:+.1f}' for x in z)} combined se)")
+        for k, v in zip(("B_r", "B_g", "B_b", "se_r", "se_g", "se_b"), [*m, *s]):
+            r[k] = g(v)
+        head = r["note"].split("; ")[:2]
+        runs = [f"{n} samples x {k} runs, seed {sd}" for (n, k), sd in zip(parts[i], seeds[i])]
+        runs.append(f"{n1 / args.runs:.0f} samples x {args.runs} runs, seed {args.seed}")
+        r["note"] = "; ".join(head + runs) + "; combined by sample count)"
+    tmpout = args.out + ".tmp"
+    with open(tmpout, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields)
+        w.writeheader()
+        w.writerows(rows)
+    os.replace(tmpout, args.out)
+    log(f"wrote {args.out}: faces refined in {time.time() - t:.0f} s")
+
+
 def checks(args, tmp, log):
     """Furnace through the same code, direct light against the exact factor, and the
     face route (orthographic camera) against the point route (radiancemeter)."""
@@ -598,6 +669,9 @@ def main():
                     help="seconds for the runs after the pilot; counts are scaled down to fit")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--check", action="store_true", help="run the convention checks only")
+    ap.add_argument("--refine-faces", type=float, default=0, metavar="MULT",
+                    help="measure the face averages of the table at --out again with MULT "
+                         "times its samples and this --seed, and combine them with it")
     args = ap.parse_args()
 
     mi.set_variant("scalar_rgb")
@@ -612,6 +686,9 @@ def main():
         return
 
     faces, _ = load_obj(args.scene)
+    if args.refine_faces > 0:
+        refine_faces(faces, args, tmp, log)
+        return
     probes = cornell_probes(faces)
     log(f"{len(faces)} faces, {len(probes)} probe points")
     t = time.time()
