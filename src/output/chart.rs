@@ -383,11 +383,25 @@ where
         r.end - r.start
     };
     let (sx, sy) = (span(spec.log_x, |p| p.0), span(spec.log_y, |p| p.1));
-    let linear = |span: f64| move |v: &f64| tick(&if v.abs() < 1e-9 * span { 0.0 } else { *v });
-    let (lx, ly) = (linear(sx), linear(sy));
+    // A log axis's key points hold each power of ten twice (ten times the decade below, and
+    // the decade's own): a value equal to the one labelled just before gets no label, or
+    // the two would print over each other. Plotters formats the key points once, in order.
+    let labeller = |log: bool, span: f64| {
+        let last = std::cell::Cell::new(f64::NAN);
+        move |v: &f64| {
+            if last.replace(*v) == *v {
+                String::new()
+            } else if log {
+                log_tick(v)
+            } else {
+                tick(&if v.abs() < 1e-9 * span { 0.0 } else { *v })
+            }
+        }
+    };
+    let (lx, ly) = (labeller(spec.log_x, sx), labeller(spec.log_y, sy));
     ch.configure_mesh()
-        .x_label_formatter(if spec.log_x { &log_tick } else { &lx })
-        .y_label_formatter(if spec.log_y { &log_tick } else { &ly })
+        .x_label_formatter(&lx)
+        .y_label_formatter(&ly)
         .x_desc(spec.x_label)
         .y_desc(spec.y_label)
         .label_style(("sans-serif", 15))
@@ -478,7 +492,7 @@ mod tests {
     }
 
     #[test]
-    fn a_linear_axis_labels_its_zero_tick_0() {
+    fn axes_label_zero_0_and_each_power_of_ten_once() {
         // The worst face errors of a bake study: the axis's range starts just below 0, and
         // the tick there came out as 2e-18.
         let dir = super::super::test_dir("chart-zero");
@@ -510,6 +524,35 @@ mod tests {
             .filter_map(|t| t.rsplit('>').next().map(str::trim))
             .collect();
         assert!(labels.contains(&"0"), "no tick labelled 0: {labels:?}");
+        // Against rays, the log axis crosses 1e8 once: one label (it came out twice).
+        let by_rays = vec![
+            Series::new(
+                "uniform",
+                vec![
+                    (8.7e6, 0.085),
+                    (3.45e7, 0.072),
+                    (1.45e8, 0.047),
+                    (5.53e8, 0.034),
+                ],
+            ),
+            Series::new(
+                "hierarchical",
+                vec![
+                    (1.1e7, 0.009),
+                    (1.96e7, 0.0045),
+                    (5.25e7, 0.0022),
+                    (1.35e8, 0.0023),
+                    (4.03e8, 0.0012),
+                ],
+            ),
+        ];
+        let files = line_chart(&dir.join("r"), "R", "rays", "e", true, true, &by_rays).unwrap();
+        let svg = std::fs::read_to_string(&files[0]).unwrap();
+        let n = svg
+            .split("</text>")
+            .filter(|t| t.rsplit('>').next().map(str::trim) == Some("1e8"))
+            .count();
+        assert_eq!(n, 1, "1e8 labelled {n} times");
         assert!(
             !labels.iter().any(|l| l.contains("e-")),
             "a tick labelled like 2e-18: {labels:?}"
