@@ -1369,6 +1369,7 @@ fn dispatch(cli: &Cli, matches: &clap::ArgMatches, cluster: &dyn Cluster) -> Res
             let width = builtin::NAMES
                 .iter()
                 .chain(generated::LISTED)
+                .chain(generated::LISTED_CITY)
                 .map(|n| n.len())
                 .max()
                 .unwrap_or(0);
@@ -1376,18 +1377,19 @@ fn dispatch(cli: &Cli, matches: &clap::ArgMatches, cluster: &dyn Cluster) -> Res
                 let what = builtin::describe(name).unwrap_or_default();
                 println!("{name:width$}  {what}");
             }
-            for name in generated::LISTED {
+            for name in generated::LISTED.iter().chain(generated::LISTED_CITY) {
                 let what = generated::describe(name).unwrap_or_default();
                 println!("{name:width$}  {what}");
             }
             println!(
                 "(generated: room-spheres-N for any N in 1..={}, {} triangles per sphere; \
                  room-spheres-N-sL with L in 0..={} subdivisions, 20·4^L triangles per \
-                 sphere, at most {} triangles)",
+                 sphere, at most {} triangles; city-N for any N in 1..={}, N x N buildings)",
                 generated::MAX_SPHERES,
                 generated::SPHERE_TRIANGLES,
                 generated::MAX_SUBDIVISIONS,
-                generated::MAX_TRIANGLES
+                generated::MAX_TRIANGLES,
+                generated::MAX_CITY
             );
             Ok(())
         }

@@ -11,6 +11,14 @@
 //! The room matches `scenes/room-sphere.obj` (floor at y = 0, up +y, white walls of
 //! reflectance 0.7, the wall at x = 0 pale blue, the light 1 cm below the ceiling,
 //! emitting 10); spheres have reflectance 0.5.
+//!
+//! `city-N` is the other kind of scene: `N x N` box buildings standing on a ground plane
+//! (every one meets the ground along its four base edges, so the scene is full of contact
+//! edges and of shadows cast onto the streets), lit by an overcast sky: a quad 60 m up
+//! that emits 1 downward and reflects nothing. Blocks are 10 m apart, buildings 6 x 6 m
+//! with heights from 6 to 30 m drawn from a hash of their grid position; walls reflect
+//! 0.6, roofs 0.5, the ground 0.3. Open at the sides, so part of the light escapes. Each
+//! building is 5 quads (walls and roof; none under it), `10 N² + 4` triangles in all.
 
 use std::fmt::Write;
 use std::path::{Path, PathBuf};
@@ -51,6 +59,24 @@ pub const LISTED: &[&str] = &[
     "room-spheres-12-s6",
 ];
 
+/// Most buildings per side of `city-N` (`10 · 320² + 4` = 1,024,004 triangles).
+pub const MAX_CITY: usize = 320;
+
+/// The generated city scenes listed by `radiosity scenes`: about 10^4, 10^5 and 10^6
+/// triangles.
+pub const LISTED_CITY: &[&str] = &["city-32", "city-100", "city-316"];
+
+/// Buildings per side a `city-N` name asks for, if it names one.
+pub fn city(name: &str) -> Option<usize> {
+    let n: usize = name.strip_prefix("city-")?.parse().ok()?;
+    (1..=MAX_CITY).contains(&n).then_some(n)
+}
+
+/// Triangles of `city-N`: 5 quads a building, the ground and the sky.
+pub fn city_triangles(n: usize) -> usize {
+    10 * n * n + 4
+}
+
 /// Triangles of an icosphere of `l` subdivisions.
 pub fn sphere_triangles(l: usize) -> usize {
     20 << (2 * l)
@@ -72,6 +98,12 @@ pub fn spheres(name: &str) -> Option<(usize, usize)> {
 
 /// One line on a generated scene (`radiosity scenes`).
 pub fn describe(name: &str) -> Option<String> {
+    if let Some(n) = city(name) {
+        return Some(format!(
+            "city block, {n} x {n} buildings on the ground under an overcast sky: {} triangles",
+            city_triangles(n)
+        ));
+    }
     let (n, l) = spheres(name)?;
     Some(format!(
         "room, ceiling light, {n} spheres of {} triangles: {} triangles, 7 quads",
@@ -265,14 +297,85 @@ pub fn obj_text(n: usize, l: usize) -> String {
     o
 }
 
+const CITY_MTL: &str = "newmtl ground\nKd 0.3 0.3 0.3\nnewmtl wall\nKd 0.6 0.6 0.6\n\
+newmtl roof\nKd 0.5 0.5 0.5\nnewmtl sky\nKd 0 0 0\nKe 1 1 1\n";
+
+/// Distance between neighbouring buildings' footprints' corners, metres.
+const PITCH: f64 = 10.0;
+/// Side of a building's square footprint.
+const FOOT: f64 = 6.0;
+/// Height of the sky quad.
+const SKY: f64 = 60.0;
+
+/// Height of building `(i, j)` of a city: 6 to 30 m, from a hash of its position only.
+pub fn building_height(i: usize, j: usize) -> f64 {
+    let mut r = crate::sampling::Pcg32::keyed(0x6369_7479, i as u64, j as u64, 0);
+    6.0 + 24.0 * r.next_f64()
+}
+
+/// The OBJ text of `city-N`. Quads are counter-clockwise seen from their front: the ground
+/// and roofs face up, the sky down, walls out.
+pub fn city_text(n: usize) -> String {
+    let mut o = String::new();
+    let _ = writeln!(
+        o,
+        "# city-{n}: generated (radiosity::scene::generated)\nmtllib city.mtl"
+    );
+    let l = n as f64 * PITCH;
+    let mut base = 1;
+    let mut quad = |o: &mut String, q: [[f64; 3]; 4]| {
+        for p in q {
+            let _ = writeln!(o, "v {} {} {}", p[0], p[1], p[2]);
+        }
+        let _ = writeln!(o, "f {} {} {} {}", base, base + 1, base + 2, base + 3);
+        base += 4;
+    };
+    let _ = writeln!(o, "o ground\nusemtl ground");
+    quad(&mut o, [[0., 0., 0.], [0., 0., l], [l, 0., l], [l, 0., 0.]]);
+    let (a, b) = (-PITCH, l + PITCH);
+    let _ = writeln!(o, "o sky\nusemtl sky");
+    quad(&mut o, [[a, SKY, a], [b, SKY, a], [b, SKY, b], [a, SKY, b]]);
+    let inset = (PITCH - FOOT) / 2.0;
+    for i in 0..n {
+        for j in 0..n {
+            let (x0, z0) = (i as f64 * PITCH + inset, j as f64 * PITCH + inset);
+            let (x1, z1, h) = (x0 + FOOT, z0 + FOOT, building_height(i, j));
+            let _ = writeln!(o, "o building_{i}_{j}\nusemtl wall");
+            quad(
+                &mut o,
+                [[x0, 0., z0], [x0, h, z0], [x1, h, z0], [x1, 0., z0]],
+            );
+            quad(
+                &mut o,
+                [[x0, 0., z1], [x1, 0., z1], [x1, h, z1], [x0, h, z1]],
+            );
+            quad(
+                &mut o,
+                [[x0, 0., z0], [x0, 0., z1], [x0, h, z1], [x0, h, z0]],
+            );
+            quad(
+                &mut o,
+                [[x1, 0., z0], [x1, h, z0], [x1, h, z1], [x1, 0., z1]],
+            );
+            let _ = writeln!(o, "usemtl roof");
+            quad(&mut o, [[x0, h, z0], [x0, h, z1], [x1, h, z1], [x1, h, z0]]);
+        }
+    }
+    o
+}
+
 /// The generated scene `name`, or `None` when the name is not one.
 pub fn load(name: &str) -> Result<Option<Scene>> {
-    let Some((n, l)) = spheres(name) else {
+    let (text, lib, mtl) = if let Some(n) = city(name) {
+        (city_text(n), "city.mtl", CITY_MTL)
+    } else if let Some((n, l)) = spheres(name) {
+        (obj_text(n, l), "generated.mtl", MTL)
+    } else {
         return Ok(None);
     };
     let label = PathBuf::from(format!("{name}.obj"));
-    let mut scene = obj::parse(name, &label, &obj_text(n, l), &|_lib: &str| {
-        Ok((Path::new("generated.mtl").to_path_buf(), MTL.to_string()))
+    let mut scene = obj::parse(name, &label, &text, &|_lib: &str| {
+        Ok((Path::new(lib).to_path_buf(), mtl.to_string()))
     })?;
     scene.source = format!("generated:{name}");
     Ok(Some(scene))
@@ -346,5 +449,54 @@ mod tests {
         assert_eq!(format!("{:?}", a.faces), format!("{:?}", b.faces));
         assert!(a.warnings.is_empty(), "{:?}", a.warnings);
         a.require_emitter().unwrap();
+    }
+
+    #[test]
+    fn a_city_is_what_its_name_says_and_faces_out() {
+        assert_eq!(city("city-32"), Some(32));
+        assert_eq!(city("city-0"), None);
+        assert_eq!(city("city-321"), None);
+        assert_eq!(city("city-x"), None);
+        let scene = load("city-3").unwrap().unwrap();
+        let again = load("city-3").unwrap().unwrap();
+        assert_eq!(
+            scene.positions, again.positions,
+            "the same name, the same scene"
+        );
+        let corners = |f: &super::super::Face| -> Vec<DVec3> {
+            f.corners
+                .iter()
+                .filter(|&&k| k != super::super::Face::NONE)
+                .map(|&k| scene.positions[k as usize])
+                .collect()
+        };
+        let tris: usize = scene.faces.iter().map(|f| corners(f).len() - 2).sum();
+        assert_eq!(tris, city_triangles(3));
+        for name in LISTED_CITY {
+            assert!(describe(name).is_some(), "{name}");
+        }
+        let (mut up, mut down, mut out) = (0, 0, 0);
+        for f in &scene.faces {
+            let p = corners(f);
+            let n = (p[1] - p[0]).cross(p[2] - p[0]).normalize();
+            let c = p.iter().copied().sum::<DVec3>() / p.len() as f64;
+            if n.y > 0.999 {
+                up += 1; // the ground and the roofs
+            } else if n.y < -0.999 {
+                down += 1; // the sky
+                assert_eq!(c.y, SKY);
+            } else {
+                // A wall: its normal points away from its building's vertical axis.
+                let (i, j) = ((c.x / PITCH).floor(), (c.z / PITCH).floor());
+                let axis = DVec3::new((i + 0.5) * PITCH, c.y, (j + 0.5) * PITCH);
+                assert!(n.dot(c - axis) > 0.0, "a wall facing in at {c}");
+                let h = building_height(i as usize, j as usize);
+                assert!((6.0..30.0).contains(&h));
+                // It stands on the ground: a contact edge along y = 0.
+                assert_eq!(p.iter().filter(|q| q.y == 0.0).count(), 2);
+                out += 1;
+            }
+        }
+        assert_eq!((up, down, out), (1 + 9, 1, 36));
     }
 }

@@ -585,7 +585,7 @@ impl Scene {
         }
         Err(Error::UnknownScene {
             name: name_or_path.to_string(),
-            known: format!("{}, room-spheres-N", builtin::NAMES.join(", ")),
+            known: format!("{}, room-spheres-N, city-N", builtin::NAMES.join(", ")),
         })
     }
 }
