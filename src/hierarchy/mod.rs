@@ -1206,6 +1206,35 @@ const CHECK_RAYS: usize = 2;
 /// instead ([`link::Traced::pieces`]).
 const PIECE_RAYS: usize = 2;
 
+/// A source whose side (`√A_s`) is more than this many times its distance from a leaf is
+/// cut for that leaf in the final gather whatever its radiosity ([`near_source`]): over a
+/// source that large and that near, the kernel of a segment landing by the leaf is
+/// thousands of times its mean, and a traced visible fraction from `n²` segments
+/// ([`link::Traced::seen_around`], unbiased) has a heavy tail. On `city-2` at `--error
+/// 0.05`, wall leaves 0.2 to 0.6 m above a 20 m ground gathered the whole ground with
+/// fractions far above 1: 51 leaves summed their factors over 1 beyond 3 bars, the
+/// largest to 6.6; cut, none did (the largest 1.03), for 14% more rays. On the Cornell box
+/// (`--error 0.01`, seed 1) no face or probe point moved by more than 7e-5 of its value,
+/// for 684 more rays of 52.5 M: its sources that near are mostly leaves already.
+const NEAR_CUT: f64 = 4.0;
+
+/// True when `s` is not a leaf and its side is more than [`NEAR_CUT`] times its distance
+/// from element `l` (a bound from the two elements' enclosing balls first, the polygons'
+/// distance only where that bound does not settle it).
+fn near_source(e: &Elements, l: u32, s: u32) -> bool {
+    if e.is_leaf(s) {
+        return false;
+    }
+    let side = e.area[s as usize].sqrt();
+    let (cl, cs) = (e.centre[l as usize], e.centre[s as usize]);
+    let (pl, ps) = (e.corners(l), e.corners(s));
+    let reach =
+        |c: glam::DVec3, p: &[glam::DVec3]| p.iter().map(|&q| q.distance(c)).fold(0.0, f64::max);
+    let apart = cl.distance(cs) - reach(cl, &pl) - reach(cs, &ps);
+    side > NEAR_CUT * apart
+        && side > NEAR_CUT * crate::formfactor::exact::polygon_distance(&pl, &ps)
+}
+
 /// Most items one thread takes at a time in the long parallel loops (the final gather's
 /// leaves, a chunk of links to evaluate, a cluster frontier). Left to itself, rayon splits
 /// a range only as often as threads steal, so the last run of a loop could be long: the
@@ -1592,6 +1621,7 @@ pub fn gather_lists(
                     let seen = en.open * en.prior.clamp(0.0, 1.0).max(hidden_floor);
                     let whole = e.is_leaf(s)
                         || weighted(&k_cut, s, spread) * seen <= descend * eps_cut
+                            && !near_source(e, l, s)
                             && !(kernel > 0.0 && en.traced.is_none() && {
                                 cost.evals += 4;
                                 kernel_weighting_error(e, li, s, b, rho, &k_cut) * seen
