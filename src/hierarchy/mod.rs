@@ -1230,9 +1230,8 @@ fn near_source(e: &Elements, l: u32, s: u32) -> bool {
     let (pl, ps) = (e.corners(l), e.corners(s));
     let reach =
         |c: glam::DVec3, p: &[glam::DVec3]| p.iter().map(|&q| q.distance(c)).fold(0.0, f64::max);
-    let apart = cl.distance(cs) - reach(cl, &pl) - reach(cs, &ps);
-    side > NEAR_CUT * apart
-        && side > NEAR_CUT * crate::formfactor::exact::polygon_distance(&pl, &ps)
+    let apart = cl.distance(cs) - reach(cl, pl) - reach(cs, ps);
+    side > NEAR_CUT * apart && side > NEAR_CUT * crate::formfactor::exact::polygon_distance(pl, ps)
 }
 
 /// Most items one thread takes at a time in the long parallel loops (the final gather's
