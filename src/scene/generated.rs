@@ -275,11 +275,7 @@ pub fn obj_text(n: usize, l: usize) -> String {
     let mut base = 1;
     for (name, mtl, q) in quads {
         let _ = writeln!(o, "o {name}\nusemtl {mtl}");
-        for p in q {
-            let _ = writeln!(o, "v {} {} {}", p[0], p[1], p[2]);
-        }
-        let _ = writeln!(o, "f {} {} {} {}", base, base + 1, base + 2, base + 3);
-        base += 4;
+        push_quad(&mut o, &mut base, q);
     }
     let (v, f) = icosphere(l);
     let (centres, radius) = placement(n);
@@ -297,10 +293,21 @@ pub fn obj_text(n: usize, l: usize) -> String {
     o
 }
 
+/// Writes quad `q` as four `v` lines and one `f` line whose corners are numbered from
+/// `base` (1-based, as OBJ counts), and moves `base` past them.
+fn push_quad(o: &mut String, base: &mut usize, q: [[f64; 3]; 4]) {
+    for p in q {
+        let _ = writeln!(o, "v {} {} {}", p[0], p[1], p[2]);
+    }
+    let b = *base;
+    let _ = writeln!(o, "f {} {} {} {}", b, b + 1, b + 2, b + 3);
+    *base += 4;
+}
+
 const CITY_MTL: &str = "newmtl ground\nKd 0.3 0.3 0.3\nnewmtl wall\nKd 0.6 0.6 0.6\n\
 newmtl roof\nKd 0.5 0.5 0.5\nnewmtl sky\nKd 0 0 0\nKe 1 1 1\n";
 
-/// Distance between neighbouring buildings' footprints' corners, metres.
+/// Grid pitch of the buildings (footprint plus street), metres.
 const PITCH: f64 = 10.0;
 /// Side of a building's square footprint.
 const FOOT: f64 = 6.0;
@@ -322,14 +329,18 @@ pub fn city_text(n: usize) -> String {
         "# city-{n}: generated (radiosity::scene::generated)\nmtllib city.mtl"
     );
     let l = n as f64 * PITCH;
+    // Seen from a corner, under the sky (from outside, the sky would hide the streets).
+    let _ = writeln!(
+        o,
+        "#@camera eye {} {} {} target {} 0 {} up 0 1 0 fov 60",
+        -0.15 * l,
+        0.6 * SKY,
+        -0.15 * l,
+        0.5 * l,
+        0.5 * l
+    );
     let mut base = 1;
-    let mut quad = |o: &mut String, q: [[f64; 3]; 4]| {
-        for p in q {
-            let _ = writeln!(o, "v {} {} {}", p[0], p[1], p[2]);
-        }
-        let _ = writeln!(o, "f {} {} {} {}", base, base + 1, base + 2, base + 3);
-        base += 4;
-    };
+    let mut quad = |o: &mut String, q: [[f64; 3]; 4]| push_quad(o, &mut base, q);
     let _ = writeln!(o, "o ground\nusemtl ground");
     quad(&mut o, [[0., 0., 0.], [0., 0., l], [l, 0., l], [l, 0., 0.]]);
     let (a, b) = (-PITCH, l + PITCH);
