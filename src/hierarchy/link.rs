@@ -43,6 +43,7 @@ use smallvec::SmallVec;
 
 use super::blockers::{range, Blockers};
 use super::element::Elements;
+use super::near;
 use crate::formfactor::exact::{self, Emitter, Receiver};
 use crate::formfactor::far;
 use crate::mesh::PatchSet;
@@ -615,6 +616,7 @@ impl Traced {
                     area: d.area,
                     cells: d.cells,
                     partly: d.partly,
+                    alpha_one: d.alpha_one,
                 };
                 let mut free: SmallVec<[bool; 16]> = SmallVec::new();
                 for k in (0..child.len()).filter(|&k| child[k] == c) {
@@ -686,6 +688,8 @@ struct Drawn {
     area: f64,
     cells: usize,
     partly: bool,
+    /// Estimate around a prior of 1 whatever prior is given (see [`judge`]).
+    alpha_one: bool,
 }
 
 /// The `n × n` rays from `r` to `s` of the stream tagged `tag`, with what [`judge`] needs.
@@ -707,6 +711,12 @@ fn draw(
         u64::from(s),
         tag,
     );
+    let whole = e.is_leaf(r);
+    if whole {
+        if let Some(strata) = near::strata(e, r, s, n * n) {
+            return draw_near(ctx, (r, s), &strata, n * n, rng, open, partly);
+        }
+    }
     let cells = n * n;
     // Source strata in random order (Fisher–Yates). The batches live on the stack up to
     // 16 rays (the default 4 × 4): the final gather traces tens of millions of them.
@@ -716,7 +726,6 @@ fn draw(
         perm.swap(k, j);
     }
     let inv = 1.0 / n as f64;
-    let whole = e.is_leaf(r);
     let mut segs: SmallVec<[SegmentRay; 16]> = SmallVec::with_capacity(cells);
     let mut weights: SmallVec<[f64; 16]> = SmallVec::with_capacity(cells);
     let mut quadrant: SmallVec<[u8; 16]> = SmallVec::with_capacity(cells);
@@ -744,22 +753,88 @@ fn draw(
         quadrant.push(u8::from(2 * (c % n) >= n) + 2 * u8::from(2 * (c / n) >= n));
         segs.push(ctx.vis.segment_ray(x, nr, y, ns));
     }
-    let area = e.area[r as usize];
-    let mean = match open {
-        // The kernel's exact mean, for the control variate.
-        Some(f) if whole && f > 0.0 => std::f64::consts::PI * area * f,
-        _ => 0.0,
-    };
-    let partly = partly && mean > 0.0;
+    let alpha_one = whole && near::touching(e, r, s, ctx.tol);
+    let mean = if whole { kernel_mean(e, r, open) } else { 0.0 };
     Drawn {
         segs,
         weights,
         quadrant,
         at_source,
         mean,
-        area,
+        area: e.area[r as usize],
         cells,
-        partly,
+        partly: partly && mean > 0.0,
+        alpha_one,
+    }
+}
+
+/// The kernel's exact mean over the pair, `π A_r F(r → P_s)`, from the unoccluded factor
+/// `open` (0 where it is not known), for the control variate.
+fn kernel_mean(e: &Elements, r: u32, open: Option<f64>) -> f64 {
+    match open {
+        Some(f) if f > 0.0 => std::f64::consts::PI * e.area[r as usize] * f,
+        _ => 0.0,
+    }
+}
+
+/// [`draw`] from the leaf `r` to a source `s` near it ([`near::strata`]): the same number
+/// of points in each piece (at least `rays` in all), paired with the receiver's strata (a
+/// square grid of at least as many, taken in random order), each segment weighted by its
+/// kernel times the Jacobians times the number of pieces, so that the weights' sum has the
+/// same mean as uniform strata's; estimated around a prior of 1 ([`judge`]).
+fn draw_near(
+    ctx: &Context,
+    (r, s): (u32, u32),
+    strata: &[near::Stratum],
+    rays: usize,
+    mut rng: Pcg32,
+    open: Option<f64>,
+    partly: bool,
+) -> Drawn {
+    let e = ctx.elements;
+    let (nr, ns) = (e.normal[r as usize], e.normal[s as usize]);
+    // Each piece takes `per` points, so that there are at least `rays` of them.
+    let per = rays.div_ceil(strata.len()).max(1);
+    let cells = strata.len() * per;
+    let side = (cells as f64).sqrt().ceil() as usize;
+    let mut perm: SmallVec<[u32; 64]> = (0..(side * side) as u32).collect();
+    for k in (1..perm.len()).rev() {
+        let j = rng.below(k as u32 + 1) as usize;
+        perm.swap(k, j);
+    }
+    let inv = 1.0 / side as f64;
+    let scale = strata.len() as f64;
+    let mut segs: SmallVec<[SegmentRay; 16]> = SmallVec::with_capacity(cells);
+    let mut weights: SmallVec<[f64; 16]> = SmallVec::with_capacity(cells);
+    let mut quadrant: SmallVec<[u8; 16]> = SmallVec::with_capacity(cells);
+    let mut at_source: SmallVec<[(f64, f64); 16]> = SmallVec::with_capacity(cells);
+    let pieces = strata.iter().flat_map(|p| std::iter::repeat_n(p, per));
+    for (stratum, &c) in pieces.zip(&perm) {
+        let c = c as usize;
+        let (a, b) = ((c % side) as f64, (c / side) as f64);
+        let (u, v) = ((a + rng.next_f64()) * inv, (b + rng.next_f64()) * inv);
+        let (x, jx) = e.point(r, u, v);
+        let (us, vs) = (rng.next_f64(), rng.next_f64());
+        let (y, jy) = stratum.piece.at(us, 1.0 - us, vs, 1.0 - vs);
+        let Some(w) = kernel_weight((x, nr, jx), (y, ns, jy)) else {
+            continue;
+        };
+        weights.push(w * scale);
+        at_source.push(stratum.to_source(us, vs));
+        quadrant.push(u8::from(2 * (c % side) >= side) + 2 * u8::from(2 * (c / side) >= side));
+        segs.push(ctx.vis.segment_ray(x, nr, y, ns));
+    }
+    let mean = kernel_mean(e, r, open);
+    Drawn {
+        segs,
+        weights,
+        quadrant,
+        at_source,
+        mean,
+        area: e.area[r as usize],
+        cells,
+        partly: partly && mean > 0.0,
+        alpha_one: true,
     }
 }
 
@@ -783,8 +858,17 @@ fn draw(
 /// (the regression coefficient of `w V` on `w`; Glasserman, *Monte Carlo methods in
 /// financial engineering*, 2004, section 4.1). `α = 1` is the estimate above before its
 /// clamp; `α = 0` plain Monte Carlo, exactly 0 when every ray is blocked.
+///
+/// That least variance assumes weights of bounded spread. Where the source touches the
+/// receiver or is near it ([`near::strata`]), a few segments weigh many times the mean,
+/// and they are the short ones, by the contact, which nothing blocks: with `α < 1` each
+/// adds `(1 - α) w / (n² m)`, a heavy tail (a wall leaf at the foot of a wall read 15
+/// times the ground it can see, on `city-16`). There the prior is taken as 1 whatever is
+/// given (`Drawn::alpha_one`), so that only blocked segments move the estimate.
 fn judge(d: &Drawn, free: &[bool], prior: Option<f64>) -> Seen {
-    let prior = prior.filter(|_| d.mean > 0.0 && !d.partly);
+    let prior = prior
+        .filter(|_| d.mean > 0.0 && !d.partly)
+        .map(|a| if d.alpha_one { 1.0 } else { a });
     if d.segs.is_empty() && !d.partly && prior.is_none() {
         // No ray could be cast (every stratum faced away or was buried): hidden.
         return Seen {
@@ -951,6 +1035,97 @@ mod tests {
             .pieces(&ctx, s, &pieces, 5, None)
             .iter()
             .all(Option::is_none));
+    }
+
+    /// A near source's strata ([`near::strata`]) keep the visible fraction unbiased: on
+    /// pairs of the Cornell box where a small floor element faces a wall or block face
+    /// many times its size close by, partly hidden, the mean over 400 seeds of the
+    /// estimate from 16 rays around a prior of 0.5 matches a brute-force fraction from
+    /// 2^18 uniform segments (`Σ w V / Σ w`) within 4 standard errors of the difference
+    /// (at most 3 pairs checked: about 2e-4 of a false alarm).
+    #[test]
+    fn a_near_sources_strata_are_unbiased() {
+        let scene = Scene::load("cornell").unwrap();
+        let patches = PatchSet::build(&scene, Resolution::MaxEdge(200.0)).unwrap();
+        let vis = Visibility::new(&patches).unwrap();
+        let mut e = Elements::from_patches(&patches);
+        // Small elements: every root split three times.
+        for _ in 0..3 {
+            let leaves: Vec<u32> = e.leaves().collect();
+            for l in leaves {
+                e.split(l);
+            }
+        }
+        let settings = crate::hierarchy::Settings::default();
+        let tol = 1e-9 * patches.diagonal;
+        let blockers = Blockers::new(&e, patches.diagonal);
+        let ctx = Context::new(&e, &patches, &vis, &blockers, &settings, tol);
+        let open = |r: u32, s: u32| open_factor(&ctx, r, s, 1e-12).value;
+        let pairs: Vec<(u32, u32)> = e
+            .leaves()
+            .flat_map(|r| (0..e.roots as u32).map(move |s| (r, s)))
+            .filter(|&(r, s)| {
+                e.root[r as usize] != s
+                    && near::strata(&e, r, s, 16).is_some()
+                    && open(r, s) > 1e-3
+                    && (0.2..0.8).contains(&visible_fraction_n(&ctx, r, s, 16, None).v)
+            })
+            .step_by(7)
+            .take(3)
+            .collect();
+        assert!(!pairs.is_empty(), "no near, partly hidden pair");
+        for (r, s) in pairs {
+            let f = open(r, s);
+            // Brute force: uniform points on both, kernel-weighted.
+            let mut rng = Pcg32::keyed(99, u64::from(r), u64::from(s), 0);
+            let (mut num, mut den, mut terms) = (0.0, 0.0, Vec::new());
+            let (nr, ns) = (e.normal[r as usize], e.normal[s as usize]);
+            for _ in 0..64 {
+                let mut segs = Vec::new();
+                let mut ws = Vec::new();
+                for _ in 0..4096 {
+                    let (x, jx) = e.point(r, rng.next_f64(), rng.next_f64());
+                    let (y, jy) = e.point(s, rng.next_f64(), rng.next_f64());
+                    if let Some(w) = kernel_weight((x, nr, jx), (y, ns, jy)) {
+                        segs.push(ctx.vis.segment_ray(x, nr, y, ns));
+                        ws.push(w);
+                    }
+                }
+                let mut free = vec![false; segs.len()];
+                ctx.vis.segments_visible(&segs, &mut free);
+                for (w, f) in ws.into_iter().zip(free) {
+                    den += w;
+                    num += if f { w } else { 0.0 };
+                    terms.push((w, f));
+                }
+            }
+            let want = num / den;
+            let se_ref = terms
+                .iter()
+                .map(|&(w, f)| (w * (f64::from(u8::from(f)) - want)).powi(2))
+                .sum::<f64>()
+                .sqrt()
+                / den;
+            let seeds = 400;
+            let (mut sum, mut sq) = (0.0, 0.0);
+            for seed in 0..seeds {
+                let ctx = Context {
+                    seed,
+                    ..Context::new(&e, &patches, &vis, &blockers, &settings, tol)
+                };
+                let v = traced_n(&ctx, r, s, 4, Some(f)).seen_around(0.5).v;
+                sum += v;
+                sq += v * v;
+            }
+            let m = seeds as f64;
+            let mean = sum / m;
+            let se = ((sq / m - mean * mean) / (m - 1.0)).sqrt();
+            let z = (mean - want) / (se * se + se_ref * se_ref).sqrt();
+            assert!(
+                z.abs() < 4.0,
+                "{r} <- {s}: {mean} ± {se} against {want} ± {se_ref}"
+            );
+        }
     }
 
     /// The estimate around a prior ([`Traced::seen_around`]) is unbiased whatever the

@@ -41,6 +41,7 @@ pub mod clusters;
 pub mod element;
 pub mod leaves;
 pub mod link;
+pub mod near;
 pub mod refine;
 pub mod solve;
 pub mod transfer;
@@ -1206,32 +1207,11 @@ const CHECK_RAYS: usize = 2;
 /// instead ([`link::Traced::pieces`]).
 const PIECE_RAYS: usize = 2;
 
-/// A source whose side (`√A_s`) is more than this many times its distance from a leaf is
-/// cut for that leaf in the final gather whatever its radiosity ([`near_source`]): over a
-/// source that large and that near, the kernel of a segment landing by the leaf is
-/// thousands of times its mean, and a traced visible fraction from `n²` segments
-/// ([`link::Traced::seen_around`], unbiased) has a heavy tail. On `city-2` at `--error
-/// 0.05`, wall leaves 0.2 to 0.6 m above a 20 m ground gathered the whole ground with
-/// fractions far above 1: 51 leaves summed their factors over 1 beyond 3 bars, the
-/// largest to 6.6; cut, none did (the largest 1.03), for 14% more rays. On the Cornell box
-/// (`--error 0.01`, seed 1) no face or probe point moved by more than 7e-5 of its value,
-/// for 684 more rays of 52.5 M: its sources that near are mostly leaves already.
-const NEAR_CUT: f64 = 4.0;
-
-/// True when `s` is not a leaf and its side is more than [`NEAR_CUT`] times its distance
-/// from element `l` (a bound from the two elements' enclosing balls first, the polygons'
-/// distance only where that bound does not settle it).
+/// True when `s` is not a leaf and is near `l` by [`near::NEAR_CUT`] ([`near::is_near`], no
+/// floor): the final
+/// gather cuts it for `l` whatever its radiosity.
 fn near_source(e: &Elements, l: u32, s: u32) -> bool {
-    if e.is_leaf(s) {
-        return false;
-    }
-    let side = e.area[s as usize].sqrt();
-    let (cl, cs) = (e.centre[l as usize], e.centre[s as usize]);
-    let (pl, ps) = (e.corners(l), e.corners(s));
-    let reach =
-        |c: glam::DVec3, p: &[glam::DVec3]| p.iter().map(|&q| q.distance(c)).fold(0.0, f64::max);
-    let apart = cl.distance(cs) - reach(cl, pl) - reach(cs, ps);
-    side > NEAR_CUT * apart && side > NEAR_CUT * crate::formfactor::exact::polygon_distance(pl, ps)
+    !e.is_leaf(s) && near::is_near(e, l, s, 0.0, near::NEAR_CUT)
 }
 
 /// Most items one thread takes at a time in the long parallel loops (the final gather's
@@ -1519,6 +1499,25 @@ pub fn gather_lists(
                         });
                         entry
                     };
+                // How many entries the leaf's entry for link `k` stands for, given the
+                // leaf's own unoccluded factor `f` to its source: a hidden link is sent to
+                // the roulette only where the roulette's own spread in the leaf's
+                // radiosity, `√(1/ROULETTE - 1) ρ_l B_s f`, is within the leaf's tolerance;
+                // else the leaf gathers it as any other ([`stands_for`]). A link found
+                // hidden from a large receiver may be wide open to a leaf of it (a strip of
+                // ground at the foot of a wall, the rest of its parent inside the
+                // building): on `city-16` at `--error 0.05`, ground leaves beside walls
+                // drew dozens of such entries four times over and summed their factors to
+                // 2 (docs/HIERARCHY.md, *Near sources*).
+                let roulette_sd = (1.0 / link::ROULETTE - 1.0).sqrt();
+                let keeps = |k: &Link, f: f64| {
+                    if k.basis == link::Basis::Roulette && roulette_sd * weight(k.src, b) * f > eps
+                    {
+                        Some(1.0)
+                    } else {
+                        stands_for(k, l, ctx.seed)
+                    }
+                };
                 // A partly buried leaf traces every entry: its rays from points inside the solid
                 // are blocked, so its traced factors are per whole area, and are divided by its
                 // exposed fraction below (a factor is per visible area).
@@ -1528,14 +1527,9 @@ pub fn gather_lists(
                     links[li]
                         .iter()
                         .filter_map(|k| {
-                            let count = stands_for(k, l, ctx.seed)?;
-                            piece(
-                                k.src,
-                                Sight::Trace(k.vis),
-                                open(k.src, None, &mut cost),
-                                count,
-                                &mut cost,
-                            )
+                            let fq = open(k.src, None, &mut cost);
+                            let count = keeps(k, fq.0)?;
+                            piece(k.src, Sight::Trace(k.vis), fq, count, &mut cost)
                         })
                         .collect()
                 } else {
@@ -1560,14 +1554,9 @@ pub fn gather_lists(
                                     prior: k.vis,
                                 })
                             } else {
-                                let count = stands_for(k, l, ctx.seed)?;
-                                piece(
-                                    k.src,
-                                    Sight::Again(k.vis),
-                                    open(k.src, Some((k.open, k.err)), &mut cost),
-                                    count,
-                                    &mut cost,
-                                )
+                                let fq = open(k.src, Some((k.open, k.err)), &mut cost);
+                                let count = keeps(k, fq.0)?;
+                                piece(k.src, Sight::Again(k.vis), fq, count, &mut cost)
                             }
                         })
                         .collect()
@@ -1598,10 +1587,10 @@ pub fn gather_lists(
                         } else {
                             Sight::Check(k.vis, bar)
                         };
-                        let Some(count) = stands_for(k, l, ctx.seed) else {
+                        let fq = open(k.src, None, &mut cost);
+                        let Some(count) = keeps(k, fq.0) else {
                             continue;
                         };
-                        let fq = open(k.src, None, &mut cost);
                         if let Some(en) = piece(k.src, v, fq, count, &mut cost) {
                             stack.push(en);
                         }
@@ -1644,10 +1633,6 @@ pub fn gather_lists(
                         .into_iter()
                         .filter(|&c| ctx.visible[c as usize] > 0.0);
                     if let Some(t) = en.traced {
-                        // Traced from the leaf: from the source's own rays that start on each
-                        // piece, where at least `PIECE_RAYS²` do; else `PIECE_RAYS²` rays
-                        // each, all those pieces' rays in one batch (full packets where each
-                        // alone went ray by ray).
                         let opened: SmallVec<[(u32, (f64, f64)); 4]> = children
                             .map(|c| (c, open(c, None, &mut cost)))
                             .filter(|&(_, (f, _))| f > 0.0)
