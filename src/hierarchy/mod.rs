@@ -632,7 +632,10 @@ pub fn run(
             for l in &mut links {
                 l.shrink_to_fit();
             }
-            let ctx = Context::new(&e, patches, vis, &blockers, s, tol);
+            let ctx = Context {
+                gather: true,
+                ..Context::new(&e, patches, vis, &blockers, s, tol)
+            };
             let extra = expansion(tree, &e, &clinks, vis, &state, eps, s);
             check_gather(&e, &links, extra.as_ref(), tree.is_some(), s)?;
             let (gather, cost) = gather_lists(

@@ -12,7 +12,7 @@
 //! ground gathered ground leaves metres wide with visible fractions up to 15
 //! (docs/HIERARCHY.md, *Near sources*).
 //!
-//! Where the source cannot be cut into elements (a leaf, or a link's source), its points
+//! In the final gather, where the source cannot be cut into elements (a leaf), its points
 //! are drawn instead from pieces of it ([`Piece::split`], the split elements use, so that a
 //! piece lies within one child of the source): the piece nearest the receiver, relative to
 //! its size, is split until every piece is at most [`NEAR_CUT`] times as wide as its
