@@ -174,10 +174,10 @@ pub struct Context<'a> {
     pub visible: Vec<f64>,
     /// The final gather's rays: a leaf's rays to a source near it are drawn by its pieces
     /// ([`near::strata`]) and, with those to a source touching it, estimated around a
-    /// prior of 1 ([`judge`]). Off while the hierarchy is refined: there the links'
+    /// prior of 1 (`judge`). Off while the hierarchy is refined: there the links'
     /// estimates decide the refinement, and drawn so on the Cornell box they left the
-    /// short block's face 8 0.02% brighter at every one of eight seeds (the refinement
-    /// changed, not the estimates' mean; docs/HIERARCHY.md, *Near sources*).
+    /// short block's face 8 0.02% brighter on average over eight seeds, none darker (the
+    /// refinement changed, not the estimates' mean; docs/HIERARCHY.md, *Near sources*).
     pub gather: bool,
 }
 

@@ -12,18 +12,19 @@
 //! ground gathered ground leaves metres wide with visible fractions up to 15
 //! (docs/HIERARCHY.md, *Near sources*).
 //!
-//! In the final gather, where the source cannot be cut into elements (a leaf), its points
-//! are drawn instead from pieces of it ([`Piece::split`], the split elements use, so that a
-//! piece lies within one child of the source): the piece nearest the receiver, relative to
-//! its size, is split until every piece is at most [`NEAR_CUT`] times as wide as its
-//! distance from the receiver (or the receiver's own side, below which splitting the
-//! source does not bound the kernel), and the count reaches the rays asked for. One point
-//! is drawn in each piece, so the pieces are the strata, and each segment's weight is its
-//! kernel times its piece's Jacobian times the number of pieces: the same expectation as
-//! uniform strata (the sum of the weights still averages the rays times the kernel's
-//! mean), but no weight exceeds its share by more than the pieces' bounded ratio. This is
-//! stratified sampling with strata chosen by a bound on the integrand (Veach, *Robust
-//! Monte Carlo methods for light transport simulation*, 1997, section 2.7.1).
+//! In the final gather, a leaf's rays to a near source (one not cut into its children:
+//! a leaf, or one within [`NEAR_CUT`]) are drawn instead from pieces of it
+//! ([`Piece::split`], the split elements use, so that a piece lies within one child of
+//! the source): the piece nearest the receiver, relative to its size, is split until
+//! every piece is at most [`STRATUM_CUT`] times as wide as its distance from the receiver
+//! (or the receiver's own side, below which splitting the source alone does not bound the
+//! kernel), and the count reaches the rays asked for. The same number of points is drawn
+//! in each piece, so the pieces are the strata, and each segment's weight is its kernel
+//! times its piece's Jacobian times the number of pieces: the same expectation as uniform
+//! strata (the sum of the weights still averages the rays times the kernel's mean), but
+//! no weight exceeds its share by more than the pieces' bounded ratio: stratified
+//! sampling with strata chosen by where the integrand is large (Veach, *Robust Monte
+//! Carlo methods for light transport simulation*, 1997, chapter 2).
 
 use glam::DVec3;
 use smallvec::SmallVec;
