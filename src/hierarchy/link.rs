@@ -1046,10 +1046,10 @@ mod tests {
     }
 
     /// A near source's strata ([`near::strata`], in the final gather) keep the visible
-    /// fraction unbiased: on
-    /// pairs of the Cornell box where a small floor element faces a wall or block face
-    /// many times its size close by, partly hidden, the mean over 400 seeds of the
-    /// estimate from 16 rays around a prior of 0.5 matches a brute-force fraction from
+    /// fraction unbiased: on pairs of the Cornell box where a small element faces a wall
+    /// or block face many times its size close by, partly hidden, the mean over 400 seeds
+    /// of the estimate from 16 rays (around a prior of 1, whatever prior is given, as for
+    /// every near pair) matches a brute-force fraction from
     /// 2^18 uniform segments (`Σ w V / Σ w`) within 4 standard errors of the difference
     /// (at most 3 pairs checked: about 2e-4 of a false alarm).
     #[test]

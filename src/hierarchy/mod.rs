@@ -1211,8 +1211,7 @@ const CHECK_RAYS: usize = 2;
 const PIECE_RAYS: usize = 2;
 
 /// True when `s` is not a leaf and is near `l` by [`near::NEAR_CUT`] ([`near::is_near`], no
-/// floor): the final
-/// gather cuts it for `l` whatever its radiosity.
+/// floor): the final gather cuts it for `l` whatever its radiosity.
 fn near_source(e: &Elements, l: u32, s: u32) -> bool {
     !e.is_leaf(s) && near::is_near(e, l, s, 0.0, near::NEAR_CUT)
 }
@@ -1636,6 +1635,10 @@ pub fn gather_lists(
                         .into_iter()
                         .filter(|&c| ctx.visible[c as usize] > 0.0);
                     if let Some(t) = en.traced {
+                        // Traced from the leaf: from the source's own rays that start on each
+                        // piece, where at least `PIECE_RAYS²` do; else `PIECE_RAYS²` rays
+                        // each, all those pieces' rays in one batch (full packets where each
+                        // alone went ray by ray).
                         let opened: SmallVec<[(u32, (f64, f64)); 4]> = children
                             .map(|c| (c, open(c, None, &mut cost)))
                             .filter(|&(_, (f, _))| f > 0.0)
