@@ -31,6 +31,8 @@ struct Cli {
     command: Command,
 }
 
+// One command is parsed per run: the size of its largest variant does not matter.
+#[allow(clippy::large_enum_variant)]
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Compute form factors, solve, and write radiosity.exr, mesh.ply, mesh.glb and
@@ -411,6 +413,13 @@ struct HierarchyArgs {
     /// times the CPU time (docs/HIERARCHY.md).
     #[arg(long, default_value_t = radiosity::hierarchy::KERNEL_CUT)]
     kernel_cut: f64,
+    /// Hierarchical with clusters: share of a leaf's tolerance that the cluster links it
+    /// takes at their own visible fractions may move its radiosity by together, in the
+    /// final gather; it checks its own view of the loudest others' sources (4 rays each).
+    /// inf: every leaf takes every cluster link's fraction (docs/HIERARCHY.md, *A leaf's
+    /// own view of a cluster*).
+    #[arg(long, default_value_t = radiosity::hierarchy::CLUSTER_SIGHT_SHARE)]
+    cluster_sight: f64,
     /// Hierarchical: cap on refine-and-solve passes.
     #[arg(long, default_value_t = 8)]
     max_passes: usize,
@@ -920,6 +929,7 @@ fn bake(args: &BakeArgs, method: MethodArg, auto: bool, cluster: &dyn Cluster) -
                 descend: args.hier.descend,
                 descend_low: args.hier.descend_low,
                 kernel_cut: args.hier.kernel_cut,
+                cluster_sight: args.hier.cluster_sight,
                 split_shadows: args.hier.split_shadows == Switch::On,
                 max_memory: args.est.max_memory,
                 ..Default::default()
