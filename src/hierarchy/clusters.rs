@@ -1907,27 +1907,29 @@ pub(super) mod tests {
         assert!(seen.iter().all(|&k| k == 1));
     }
 
+    /// A unit square at height `z`, wound to face up (+z) or down.
+    fn unit_square(z: f64, up: bool) -> Shape2 {
+        let c = [
+            DVec3::new(0.0, 0.0, z),
+            DVec3::new(1.0, 0.0, z),
+            DVec3::new(1.0, 1.0, z),
+            DVec3::new(0.0, 1.0, z),
+        ];
+        if up {
+            Shape2::Quad(c)
+        } else {
+            Shape2::Quad([c[0], c[3], c[2], c[1]])
+        }
+    }
+
     #[test]
     fn near_field_factor_is_unbiased_where_the_point_source_is_not() {
         // Two unit squares facing each other a distance c apart: the exact factor is
         // Howell's closed form; the point source at the centre overestimates it.
-        let sq = |z: f64, up: bool| {
-            let c = [
-                DVec3::new(0.0, 0.0, z),
-                DVec3::new(1.0, 0.0, z),
-                DVec3::new(1.0, 1.0, z),
-                DVec3::new(0.0, 1.0, z),
-            ];
-            if up {
-                Shape2::Quad(c)
-            } else {
-                Shape2::Quad([c[0], c[3], c[2], c[1]])
-            }
-        };
         for c in [0.25f64, 1.0, 4.0] {
             let mut e = Elements::default();
-            e.add_root(sq(0.0, true), DVec3::Z);
-            e.add_root(sq(c, false), -DVec3::Z);
+            e.add_root(unit_square(0.0, true), DVec3::Z);
+            e.add_root(unit_square(c, false), -DVec3::Z);
             let vis = e.visible_areas();
             let t = Tree::build(&e, &vis, &[0.5, 0.5]);
             let exact = crate::analytic::parallel_rectangles(1.0, 1.0, c);
@@ -1971,23 +1973,10 @@ pub(super) mod tests {
     /// (a false alarm about once in 10^4 runs per case).
     #[test]
     fn a_leafs_own_view_of_a_cluster_is_unbiased() {
-        let sq = |z: f64, up: bool| {
-            let c = [
-                DVec3::new(0.0, 0.0, z),
-                DVec3::new(1.0, 0.0, z),
-                DVec3::new(1.0, 1.0, z),
-                DVec3::new(0.0, 1.0, z),
-            ];
-            if up {
-                Shape2::Quad(c)
-            } else {
-                Shape2::Quad([c[0], c[3], c[2], c[1]])
-            }
-        };
         for c in [0.25f64, 1.0] {
             let mut e = Elements::default();
-            e.add_root(sq(0.0, true), DVec3::Z);
-            e.add_root(sq(c, false), -DVec3::Z);
+            e.add_root(unit_square(0.0, true), DVec3::Z);
+            e.add_root(unit_square(c, false), -DVec3::Z);
             let vis = e.visible_areas();
             let t = Tree::build(&e, &vis, &[0.5, 0.5]);
             let rec = Receiver {
