@@ -1420,6 +1420,10 @@ pub struct PieceFactor {
 /// ([`Expansion::checked`]).
 pub const CHECK_POINTS: usize = 4;
 
+/// Draws of a point of the element in front of a checked point's plane
+/// ([`Expansion::checked`]).
+const CHECK_TRIES: usize = 8;
+
 /// What a leaf needs to trace its own view of a cluster link's source
 /// ([`Expansion::entries`]).
 pub struct Sight<'a> {
@@ -1630,11 +1634,19 @@ impl Expansion<'_> {
         let segs: SmallVec<[SegmentRay; CHECK_POINTS]> = drawn
             .iter()
             .map(|&k| {
-                let (at, _) = e.point(l, rng.next_f64(), rng.next_f64());
                 let s = points[k].0;
-                sight
-                    .vis
-                    .segment_ray(at, n_l, s.at, e.normal[s.root as usize])
+                let n_s = e.normal[s.root as usize];
+                // A point of the element behind the source point's plane sees nothing of
+                // it, and its term `F(y_k → l)` counts only the part in front (a leaf of
+                // a sphere beside another): drawn again, up to `CHECK_TRIES` times.
+                let mut at = e.point(l, rng.next_f64(), rng.next_f64()).0;
+                for _ in 1..CHECK_TRIES {
+                    if n_s.dot(at - s.at) > 0.0 {
+                        break;
+                    }
+                    at = e.point(l, rng.next_f64(), rng.next_f64()).0;
+                }
+                sight.vis.segment_ray(at, n_l, s.at, n_s)
             })
             .collect();
         let mut free: SmallVec<[bool; CHECK_POINTS]> = smallvec::smallvec![false; segs.len()];
