@@ -612,25 +612,18 @@ impl Traced {
             .iter()
             .map(|&(c, f)| {
                 let mut sub = Drawn {
-                    segs: SmallVec::new(),
-                    weights: SmallVec::new(),
-                    quadrant: SmallVec::new(),
-                    at_source: SmallVec::new(),
                     mean: if d.mean > 0.0 {
                         std::f64::consts::PI * d.area * f
                     } else {
                         0.0
                     },
-                    area: d.area,
-                    cells: d.cells,
                     partly: d.partly,
                     alpha_one: d.alpha_one,
+                    ..Drawn::empty(d.area, d.cells, 0)
                 };
                 let mut free: SmallVec<[bool; 16]> = SmallVec::new();
                 for k in (0..child.len()).filter(|&k| child[k] == c) {
-                    sub.segs.push(d.segs[k]);
-                    sub.weights.push(d.weights[k]);
-                    sub.quadrant.push(d.quadrant[k]);
+                    sub.push(d.segs[k], d.weights[k], d.at_source[k], d.quadrant[k]);
                     free.push(self.free[k]);
                 }
                 (sub.segs.len() >= least.max(1)).then(|| {
@@ -700,6 +693,49 @@ struct Drawn {
     alpha_one: bool,
 }
 
+impl Drawn {
+    /// No segment yet (room for `room`), for a receiver of area `area` and `cells` strata;
+    /// no kernel mean, not partly buried, estimated around the prior given.
+    fn empty(area: f64, cells: usize, room: usize) -> Drawn {
+        Drawn {
+            segs: SmallVec::with_capacity(room),
+            weights: SmallVec::with_capacity(room),
+            quadrant: SmallVec::with_capacity(room),
+            at_source: SmallVec::with_capacity(room),
+            mean: 0.0,
+            area,
+            cells,
+            partly: false,
+            alpha_one: false,
+        }
+    }
+
+    /// Adds a segment of kernel weight `w` starting at `at_source` (the source's
+    /// parameters), from the receiver's quadrant `q` ([`quadrant`]).
+    fn push(&mut self, seg: SegmentRay, w: f64, at_source: (f64, f64), q: u8) {
+        self.segs.push(seg);
+        self.weights.push(w);
+        self.at_source.push(at_source);
+        self.quadrant.push(q);
+    }
+}
+
+/// The quadrant of stratum `c` of a `side × side` grid: bit 0 its upper half along the
+/// first parameter, bit 1 along the second.
+fn quadrant(c: usize, side: usize) -> u8 {
+    u8::from(2 * (c % side) >= side) + 2 * u8::from(2 * (c / side) >= side)
+}
+
+/// `0..n` in random order (Fisher–Yates).
+fn shuffled(n: usize, rng: &mut Pcg32) -> SmallVec<[u32; 64]> {
+    let mut perm: SmallVec<[u32; 64]> = (0..n as u32).collect();
+    for k in (1..n).rev() {
+        let j = rng.below(k as u32 + 1) as usize;
+        perm.swap(k, j);
+    }
+    perm
+}
+
 /// The `n × n` rays from `r` to `s` of the stream tagged `tag`, with what [`judge`] needs.
 fn draw(
     ctx: &Context,
@@ -726,18 +762,11 @@ fn draw(
         }
     }
     let cells = n * n;
-    // Source strata in random order (Fisher–Yates). The batches live on the stack up to
-    // 16 rays (the default 4 × 4): the final gather traces tens of millions of them.
-    let mut perm: SmallVec<[u32; 16]> = (0..cells as u32).collect();
-    for k in (1..cells).rev() {
-        let j = rng.below(k as u32 + 1) as usize;
-        perm.swap(k, j);
-    }
+    // Source strata in random order. The batches live on the stack up to 16 rays (the
+    // default 4 × 4): the final gather traces tens of millions of them.
+    let perm = shuffled(cells, &mut rng);
     let inv = 1.0 / n as f64;
-    let mut segs: SmallVec<[SegmentRay; 16]> = SmallVec::with_capacity(cells);
-    let mut weights: SmallVec<[f64; 16]> = SmallVec::with_capacity(cells);
-    let mut quadrant: SmallVec<[u8; 16]> = SmallVec::with_capacity(cells);
-    let mut at_source: SmallVec<[(f64, f64); 16]> = SmallVec::with_capacity(cells);
+    let mut drawn = Drawn::empty(e.area[r as usize], cells, cells);
     for (c, &d) in perm.iter().enumerate() {
         let (a, b) = ((c % n) as f64, (c / n) as f64);
         let mut at = None;
@@ -756,24 +785,17 @@ fn draw(
         let Some(w) = kernel_weight((x, nr, jx), (y, ns, jy)) else {
             continue;
         };
-        weights.push(w);
-        at_source.push((us, vs));
-        quadrant.push(u8::from(2 * (c % n) >= n) + 2 * u8::from(2 * (c / n) >= n));
-        segs.push(ctx.vis.segment_ray(x, nr, y, ns));
+        drawn.push(
+            ctx.vis.segment_ray(x, nr, y, ns),
+            w,
+            (us, vs),
+            quadrant(c, n),
+        );
     }
-    let alpha_one = whole && ctx.gather && near::touching(e, r, s, ctx.tol);
-    let mean = if whole { kernel_mean(e, r, open) } else { 0.0 };
-    Drawn {
-        segs,
-        weights,
-        quadrant,
-        at_source,
-        mean,
-        area: e.area[r as usize],
-        cells,
-        partly: partly && mean > 0.0,
-        alpha_one,
-    }
+    drawn.alpha_one = whole && ctx.gather && near::touching(e, r, s, ctx.tol);
+    drawn.mean = if whole { kernel_mean(e, r, open) } else { 0.0 };
+    drawn.partly = partly && drawn.mean > 0.0;
+    drawn
 }
 
 /// The kernel's exact mean over the pair, `π A_r F(r → P_s)`, from the unoccluded factor
@@ -805,17 +827,10 @@ fn draw_near(
     let per = rays.div_ceil(strata.len()).max(1);
     let cells = strata.len() * per;
     let side = (cells as f64).sqrt().ceil() as usize;
-    let mut perm: SmallVec<[u32; 64]> = (0..(side * side) as u32).collect();
-    for k in (1..perm.len()).rev() {
-        let j = rng.below(k as u32 + 1) as usize;
-        perm.swap(k, j);
-    }
+    let perm = shuffled(side * side, &mut rng);
     let inv = 1.0 / side as f64;
     let scale = strata.len() as f64;
-    let mut segs: SmallVec<[SegmentRay; 16]> = SmallVec::with_capacity(cells);
-    let mut weights: SmallVec<[f64; 16]> = SmallVec::with_capacity(cells);
-    let mut quadrant: SmallVec<[u8; 16]> = SmallVec::with_capacity(cells);
-    let mut at_source: SmallVec<[(f64, f64); 16]> = SmallVec::with_capacity(cells);
+    let mut drawn = Drawn::empty(e.area[r as usize], cells, cells);
     let pieces = strata.iter().flat_map(|p| std::iter::repeat_n(p, per));
     for (stratum, &c) in pieces.zip(&perm) {
         let c = c as usize;
@@ -827,23 +842,13 @@ fn draw_near(
         let Some(w) = kernel_weight((x, nr, jx), (y, ns, jy)) else {
             continue;
         };
-        weights.push(w * scale);
-        at_source.push(stratum.to_source(us, vs));
-        quadrant.push(u8::from(2 * (c % side) >= side) + 2 * u8::from(2 * (c / side) >= side));
-        segs.push(ctx.vis.segment_ray(x, nr, y, ns));
+        let seg = ctx.vis.segment_ray(x, nr, y, ns);
+        drawn.push(seg, w * scale, stratum.to_source(us, vs), quadrant(c, side));
     }
-    let mean = kernel_mean(e, r, open);
-    Drawn {
-        segs,
-        weights,
-        quadrant,
-        at_source,
-        mean,
-        area: e.area[r as usize],
-        cells,
-        partly: partly && mean > 0.0,
-        alpha_one: true,
-    }
+    drawn.mean = kernel_mean(e, r, open);
+    drawn.partly = partly && drawn.mean > 0.0;
+    drawn.alpha_one = true;
+    drawn
 }
 
 /// The visible fraction from the rays `d` and their answers `free` (true: not blocked).

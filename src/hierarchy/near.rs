@@ -207,6 +207,16 @@ pub fn strata(e: &Elements, r: u32, s: u32, rays: usize) -> Option<SmallVec<[Str
 mod tests {
     use super::*;
 
+    /// A 0.5 m wall facing -y from height `z` up, near the sources' first corner.
+    fn wall(z: f64) -> Piece {
+        Piece::Quad([
+            DVec3::new(1.0, 1.0, z),
+            DVec3::new(1.5, 1.0, z),
+            DVec3::new(1.5, 1.0, z + 0.5),
+            DVec3::new(1.0, 1.0, z + 0.5),
+        ])
+    }
+
     /// Each piece's points are the source's points at the parameters [`Stratum::to_source`]
     /// gives, for quads and triangles three levels down; the pieces' areas add up to the
     /// source's; and every piece ends within the near bound or the floor.
@@ -228,15 +238,7 @@ mod tests {
             let mut e = Elements::default();
             let s = e.add_root(piece, DVec3::Z);
             // A small wall standing 0.2 m above the source, near its first corner.
-            let r = e.add_root(
-                Piece::Quad([
-                    DVec3::new(1.0, 1.0, 0.2),
-                    DVec3::new(1.5, 1.0, 0.2),
-                    DVec3::new(1.5, 1.0, 0.7),
-                    DVec3::new(1.0, 1.0, 0.7),
-                ]),
-                DVec3::new(0.0, -1.0, 0.0),
-            );
+            let r = e.add_root(wall(0.2), DVec3::new(0.0, -1.0, 0.0));
             let got = strata(&e, r, s, 16).expect("a 20 m source 0.2 m away is near");
             assert!(got.len() >= 16 && got.len() <= MOST_PIECES, "{}", got.len());
             let area: f64 = got.iter().map(|p| p.piece.area()).sum();
@@ -251,15 +253,7 @@ mod tests {
                 }
             }
             // Far from the source, or as wide as it: drawn as a whole.
-            let far = e.add_root(
-                Piece::Quad([
-                    DVec3::new(1.0, 1.0, 30.0),
-                    DVec3::new(1.5, 1.0, 30.0),
-                    DVec3::new(1.5, 1.0, 30.5),
-                    DVec3::new(1.0, 1.0, 30.5),
-                ]),
-                DVec3::new(0.0, -1.0, 0.0),
-            );
+            let far = e.add_root(wall(30.0), DVec3::new(0.0, -1.0, 0.0));
             assert!(strata(&e, far, s, 16).is_none());
             assert!(strata(&e, s, r, 16).is_none());
         }
