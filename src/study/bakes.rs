@@ -460,7 +460,7 @@ fn write(s: &Settings, runs: &[Run], refs: &[Probe]) -> Result<()> {
     }
     probes.push('\n');
     for (k, p) in refs.iter().enumerate() {
-        let _ = write!(probes, "{},{},{:.6}", p.kind, p.id, luminance(p.b));
+        let _ = write!(probes, "{},{},{:.6e}", p.kind, p.id, luminance(p.b));
         for r in runs {
             let _ = write!(
                 probes,
@@ -469,7 +469,7 @@ fn write(s: &Settings, runs: &[Run], refs: &[Probe]) -> Result<()> {
                     .get(k)
                     .copied()
                     .flatten()
-                    .map_or(String::new(), |v| format!("{v:.6}"))
+                    .map_or(String::new(), |v| format!("{v:.6e}"))
             );
         }
         probes.push('\n');
