@@ -580,12 +580,33 @@ fn points(sol: &Solution) -> Vec<(usize, Option<f64>)> {
     out
 }
 
+/// Luminance of the output mesh (the leaves' per-vertex values, as the EXR and PLY hold
+/// them: [`hierarchy::leaves::leaf_mesh`], least-squares vertex values) at the points of
+/// [`points`], in the same order; `None` where no output triangle holds the point.
+fn output_points(patches: &PatchSet, sol: &Solution) -> Vec<Option<f64>> {
+    use radiosity::output::{interpolate_with, Nodal};
+    let e = &sol.elements;
+    let (leaves, b, _) = hierarchy::leaves::leaf_mesh(e, patches, &sol.state.b);
+    let verts = interpolate_with(&leaves, &b, 30.0, Nodal::Linear);
+    let mut out = Vec::new();
+    for r in 0..e.roots {
+        for (u, v) in [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)] {
+            let at = e.piece[r].at(u, 1.0 - u, v, 1.0 - v).0;
+            let got =
+                radiosity::study::bakes::probe(&verts, at, e.normal[r], 1e-4 * patches.diagonal);
+            out.push(got.map(radiosity::scene::luminance));
+        }
+    }
+    out
+}
+
 /// Clustered against unclustered on a 10^4-triangle scene (`room-spheres-8`: 10,240
 /// sphere triangles and the room, `--error 0.05`, or `RADIOSITY_TEN_K_ERROR`): at least 10
 /// times fewer initial links clustered, object averages within 1%, root (input face)
-/// averages within 2% and points within 3% at the 99th percentile, and every root's
-/// difference within the sum of the two bakes' estimated errors. The unclustered bake
-/// evaluates 10^8 candidate pairs (11 GB peak, 3 to 4 minutes here): run by hand,
+/// averages within 2% and points within 3% at the 99th percentile (the output meshes'
+/// values there within 1%), and every root's difference within the sum of the two
+/// bakes' estimated errors. The unclustered bake evaluates 10^8 candidate pairs (4 GB
+/// peak, 3 to 4 minutes here): run by hand,
 /// `cargo test --release --test tests clustered_and_unclustered_at_ten_thousand -- --ignored --nocapture`.
 #[test]
 #[ignore]
@@ -643,6 +664,18 @@ fn clustered_and_unclustered_at_ten_thousand_triangles() {
             _ => None,
         })
         .collect();
+    // The same points on the output meshes, where each bake's leaves of different sizes
+    // are joined by their vertex values as a user sees them.
+    let (qa, qb) = (output_points(&p, &a), output_points(&p, &b));
+    let out_pts: Vec<f64> = qa
+        .iter()
+        .zip(&qb)
+        .zip(pa.iter().zip(&pb))
+        .filter_map(|((x, y), (la, lb))| match (x, y, la.1, lb.1) {
+            (Some(x), Some(y), Some(_), Some(_)) if *y > 0.0 => Some(rel(*x, *y)),
+            _ => None,
+        })
+        .collect();
     let summary = |v: &[f64]| {
         let mut s = v.to_vec();
         s.sort_by(f64::total_cmp);
@@ -656,17 +689,20 @@ fn clustered_and_unclustered_at_ten_thousand_triangles() {
     };
     let (r50, r99, rmax, rover) = summary(&roots);
     let (p50, p99, pmax, pover) = summary(&pts);
+    let (o50, o99, omax, oover) = summary(&out_pts);
     let (ia, ib) = (a.report.initial_links, b.report.initial_links);
     eprintln!(
         "clustered {ta:.0} s, unclustered {tb:.0} s; initial links {ia} vs {ib} (1/{:.0}); \
          links {} vs {}; objects worst {worst_obj:.4}; roots median {r50:.4}, 99% {r99:.4}, \
          worst {rmax:.4}, {rover} of {} over 3%; points median {p50:.4}, 99% {p99:.4}, worst \
-         {pmax:.4}, {pover} of {} over 3%; rows over one {} vs {}",
+         {pmax:.4}, {pover} of {} over 3%; output points median {o50:.4}, 99% {o99:.4}, \
+         worst {omax:.4}, {oover} of {} over 3%; rows over one {} vs {}",
         ib as f64 / ia as f64,
         a.report.links,
         b.report.links,
         roots.len(),
         pts.len(),
+        out_pts.len(),
         a.report.rows_over_one,
         b.report.rows_over_one
     );
@@ -734,9 +770,13 @@ fn clustered_and_unclustered_at_ten_thousand_triangles() {
     // shadows were split: single sphere faces, one leaf each, whose estimated errors are
     // 3-8% in both bakes), points within 2.00% at the 99th percentile, every root's
     // difference within the sum of the two bakes' estimated errors. At --error 0.02 (a
-    // first version of the shadow rule): 1/38, 0.24%, 1.26%, 1.74%, none beyond. The
-    // issue's pointwise 3% does not hold at every point (the worst: 28% at 0.05, 7.9% at
-    // 0.02): what is asserted is what holds.
+    // first version of the shadow rule): 1/38, 0.24%, 1.26%, 1.74%, none beyond. A leaf's
+    // value at a point is its mean over the leaf, and the two bakes split the room's faces
+    // differently (a leaf of one may be four of the other's): the worst leaf points
+    // differ by 28% at 0.05, 15% at 0.02. The output meshes, which join the leaves by
+    // their vertex values as the files hold them, agree within 0.75% at the 99th
+    // percentile at 0.05 (9 of 41,130 points over 3%, worst 7.2%, on room faces of leaves
+    // 20 to 40 cm across) and 0.67% at 0.02 (2 over 3%, worst 4.6%, one sphere face).
     assert!(ia * 10 <= ib, "initial links {ia} vs {ib}");
     assert!(worst_obj < 0.01, "object averages differ by {worst_obj}");
     assert!(
@@ -744,11 +784,18 @@ fn clustered_and_unclustered_at_ten_thousand_triangles() {
         "root averages differ by {r99} at the 99th percentile"
     );
     assert!(p99 < 0.03, "points differ by {p99} at the 99th percentile");
+    assert!(
+        o99 < 0.01,
+        "output points differ by {o99} at the 99th percentile"
+    );
     assert_eq!(
         beyond, 0,
         "roots whose difference is beyond their estimated errors"
     );
-    eprintln!("(not asserted) roots worst {rmax:.4}, points worst {pmax:.4}");
+    eprintln!(
+        "(not asserted) roots worst {rmax:.4}, points worst {pmax:.4}, output points worst \
+         {omax:.4}"
+    );
 }
 
 /// Radiosity (luminance) of the output vertex at `p` with normal `+y` in `v`.
