@@ -272,6 +272,14 @@ fn vector_width_does_not_change_results() {
             strata: 7,
             replicates: 3,
         },
+        // Unoccluded pairs by Gauss rules whose point factors are evaluated in lanes,
+        // occluded ones sampled.
+        EstimatorChoice::SemiAnalytic {
+            points: 3,
+            rays: 2,
+            replicates: 3,
+            tol: 1e-6,
+        },
     ];
     for choice in &choices {
         let est = choice.build();

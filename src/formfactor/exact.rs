@@ -47,7 +47,7 @@ use std::sync::OnceLock;
 
 use glam::DVec3;
 
-use crate::analytic::{gauss_legendre, point_to_polygon_unit};
+use crate::analytic::{gauss_legendre, point_to_polygon_lanes, point_to_polygon_unit, LANES};
 
 /// A parameter map of (part of) an emitter over the unit square.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -348,6 +348,35 @@ pub fn point_factor(x: DVec3, n_x: DVec3, r: &Receiver) -> f64 {
     point_to_polygon_unit(x, n_x, r.poly)
 }
 
+/// [`point_factor`] at every point of `xs`, into `out` (cleared first), bit for bit the
+/// same values, [`LANES`] points at a time ([`point_to_polygon_lanes`], at the widest
+/// vector width of [`crate::simd::with_widest`]).
+pub fn point_factors(xs: &[DVec3], n_x: DVec3, r: &Receiver, out: &mut Vec<f64>) {
+    out.clear();
+    if !(3..=4).contains(&r.poly.len()) {
+        out.extend(xs.iter().map(|&x| point_factor(x, n_x, r)));
+        return;
+    }
+    crate::simd::with_widest(
+        #[inline(always)]
+        || {
+            let mut lane = [0.0; LANES];
+            for chunk in xs.chunks(LANES) {
+                let clip = point_to_polygon_lanes(chunk, n_x, r.poly, &mut lane);
+                for (l, &x) in chunk.iter().enumerate() {
+                    out.push(if r.normal.dot(x - r.centroid) <= 0.0 {
+                        0.0
+                    } else if clip >> l & 1 == 1 {
+                        point_to_polygon_unit(x, n_x, r.poly)
+                    } else {
+                        lane[l]
+                    });
+                }
+            }
+        },
+    )
+}
+
 /// An emitter piece with its Gauss–Legendre nodes (point, weight × Jacobian) cached by
 /// order, so that one emitter integrated against many receivers maps its nodes once.
 #[derive(Clone, Debug)]
@@ -355,6 +384,9 @@ pub struct Emitter {
     piece: Piece,
     ball: (DVec3, f64),
     nodes: [Vec<(DVec3, f64)>; MAX_ORDER + 1],
+    /// Scratch: the points of the rules evaluated together, and their factors.
+    points: Vec<DVec3>,
+    values: Vec<f64>,
 }
 
 impl Emitter {
@@ -364,11 +396,13 @@ impl Emitter {
             piece,
             ball: piece.ball(),
             nodes: std::array::from_fn(|_| Vec::new()),
+            points: Vec::new(),
+            values: Vec::new(),
         }
     }
 
-    /// The tensor Gauss rule of order `m` applied to `f`.
-    fn gauss(&mut self, m: usize, f: &mut impl FnMut(DVec3) -> f64) -> f64 {
+    /// The nodes of the tensor Gauss rule of order `m`, mapped on first use.
+    fn nodes(&mut self, m: usize) -> &[(DVec3, f64)] {
         if self.nodes[m].is_empty() {
             let rule = &rules().gauss[m];
             let piece = self.piece;
@@ -383,7 +417,32 @@ impl Emitter {
                 .filter(|&(_, w)| w > 0.0)
                 .collect();
         }
-        self.nodes[m].iter().map(|&(x, w)| w * f(x)).sum()
+        &self.nodes[m]
+    }
+
+    /// The tensor Gauss rules of orders `ms` (0 for none) applied to `F(x → P_r)`, their
+    /// points evaluated in one batch; `evals` counts the evaluations.
+    fn gauss(&mut self, ms: [usize; 2], n_e: DVec3, r: &Receiver, evals: &mut u64) -> [f64; 2] {
+        let mut points = std::mem::take(&mut self.points);
+        points.clear();
+        for &m in &ms {
+            if m > 0 {
+                points.extend(self.nodes(m).iter().map(|&(x, _)| x));
+            }
+        }
+        point_factors(&points, n_e, r, &mut self.values);
+        *evals += points.len() as u64;
+        self.points = points;
+        let mut at = 0;
+        ms.map(|m| {
+            if m == 0 {
+                return f64::NAN;
+            }
+            let nodes = &self.nodes[m];
+            let vals = &self.values[at..at + nodes.len()];
+            at += nodes.len();
+            nodes.iter().zip(vals).map(|(&(_, w), &v)| w * v).sum()
+        })
     }
 }
 
@@ -397,12 +456,8 @@ pub fn integrate(
     abs_floor: f64,
 ) -> Integral {
     let mut evals = 0u64;
-    let mut f = |x: DVec3| {
-        evals += 1;
-        point_factor(x, n_e, r)
-    };
     let tol_rel = tol_rel.max(1e-15);
-    let mut out = integrate_piece(emitter, r, tol_rel, None, abs_floor, 0, &mut f);
+    let mut out = integrate_piece(emitter, n_e, r, tol_rel, None, abs_floor, 0, &mut evals);
     out.evals = evals;
     out.err += out.value.abs() * rounding(emitter, r, evals);
     out
@@ -436,11 +491,14 @@ pub fn rounding(emitter: &Emitter, r: &Receiver, evals: u64) -> f64 {
         .map(|p| p.abs().max_element())
         .fold(0.0, f64::max);
     let rc = r.poly.iter().fold(DVec3::ZERO, |a, &p| a + p) / r.poly.len().max(1) as f64;
+    // The square root of the largest square: the same value (a correctly rounded square
+    // root is monotone), one root instead of four.
     let r_radius = r
         .poly
         .iter()
-        .map(|&p| (p - rc).length())
-        .fold(0.0, f64::max);
+        .map(|&p| (p - rc).length_squared())
+        .fold(0.0, f64::max)
+        .sqrt();
     let size = emitter.ball.1.min(r_radius).max(f64::MIN_POSITIVE);
     f64::EPSILON * (evals as f64 + 64.0 * (1.0 + far / size))
 }
@@ -460,12 +518,13 @@ fn gauss_order(delta: f64, tol_rel: f64) -> Option<(usize, f64)> {
 #[allow(clippy::too_many_arguments)]
 fn integrate_piece(
     em: &mut Emitter,
+    n_e: DVec3,
     r: &Receiver,
     tol_rel: f64,
     tol_abs: Option<f64>,
     abs_floor: f64,
     depth: u32,
-    f: &mut impl FnMut(DVec3) -> f64,
+    evals: &mut u64,
 ) -> Integral {
     let rules = rules();
     let piece = em.piece;
@@ -494,15 +553,16 @@ fn integrate_piece(
     } else {
         0
     };
-    let mut lo = if lo_m > 0 {
-        em.gauss(lo_m, f)
-    } else {
-        f64::NAN
-    };
+    // The first rule and its check are evaluated in one batch.
+    let [mut lo, first] = em.gauss([lo_m, m0], n_e, r, evals);
     let mut best: Option<Integral> = None;
     let mut m = m0;
     while m <= MAX_ORDER {
-        let hi = em.gauss(m, f);
+        let hi = if m == m0 {
+            first
+        } else {
+            em.gauss([0, m], n_e, r, evals)[1]
+        };
         if lo_m > 0 {
             let diff = (hi - lo).abs();
             // Geometric convergence: the error of Q_m is about diff · ρ^(-2 (m - lo_m)).
@@ -538,7 +598,8 @@ fn integrate_piece(
                 } else {
                     let (x, jac) = piece.at(u, um, v, vm);
                     if jac > 0.0 {
-                        jac * f(x)
+                        *evals += 1;
+                        jac * point_factor(x, n_e, r)
                     } else {
                         0.0
                     }
@@ -573,7 +634,16 @@ fn integrate_piece(
     let mut total = Integral::default();
     for q in piece.split() {
         let mut sub = Emitter::new(q);
-        total += integrate_piece(&mut sub, r, tol_rel, Some(quarter), abs_floor, depth + 1, f);
+        total += integrate_piece(
+            &mut sub,
+            n_e,
+            r,
+            tol_rel,
+            Some(quarter),
+            abs_floor,
+            depth + 1,
+            evals,
+        );
     }
     if total.err <= best.err {
         total

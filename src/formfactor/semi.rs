@@ -149,13 +149,16 @@ fn corners(p: &PatchSet, i: usize) -> ([DVec3; 4], usize) {
     p.corner_points(i)
 }
 
-/// Signed distances of the corners of `b` from the plane of `a`, as (min, max).
+/// Signed distances of the corners of `b` from the plane of `a`, as (min, max). Read
+/// through the corner indices, without gathering the corners first: it runs several times
+/// for each of the N² pairs.
+#[inline]
 fn plane_range(p: &PatchSet, a: usize, b: usize) -> (f64, f64) {
     let (n, c) = (p.normal[a], p.centroid[a]);
-    let (pts, k) = p.corner_points(b);
-    pts[..k]
+    p.corners[b]
         .iter()
-        .map(|&q| n.dot(q - c))
+        .take_while(|&&v| v != crate::mesh::NONE)
+        .map(|&v| n.dot(p.vertices[v as usize] - c))
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), d| {
             (lo.min(d), hi.max(d))
         })
