@@ -590,22 +590,32 @@ fn integrate_piece(
     for (level, rule) in rules.ts.iter().enumerate() {
         let n = rule.len();
         let mut next = vec![0.0; n * n];
-        let mut sum = 0.0;
-        for (a, &(u, um, wu)) in rule.iter().enumerate() {
-            for (b, &(v, vm, wv)) in rule.iter().enumerate() {
-                let val = if level > 0 && a % 2 == 0 && b % 2 == 0 {
-                    grid[(a / 2) * (n / 2 + 1) + b / 2]
+        // The level's new nodes (with a positive Jacobian) are evaluated in one batch.
+        let (mut points, mut slots) = (Vec::new(), Vec::new());
+        for (a, &(u, um, _)) in rule.iter().enumerate() {
+            for (b, &(v, vm, _)) in rule.iter().enumerate() {
+                if level > 0 && a % 2 == 0 && b % 2 == 0 {
+                    next[a * n + b] = grid[(a / 2) * (n / 2 + 1) + b / 2];
                 } else {
                     let (x, jac) = piece.at(u, um, v, vm);
                     if jac > 0.0 {
-                        *evals += 1;
-                        jac * point_factor(x, n_e, r)
-                    } else {
-                        0.0
+                        points.push(x);
+                        slots.push((a * n + b, jac));
                     }
-                };
-                next[a * n + b] = val;
-                sum += wu * wv * val;
+                }
+            }
+        }
+        let mut values = std::mem::take(&mut em.values);
+        point_factors(&points, n_e, r, &mut values);
+        *evals += points.len() as u64;
+        for (&(k, jac), &f) in slots.iter().zip(&values) {
+            next[k] = jac * f;
+        }
+        em.values = values;
+        let mut sum = 0.0;
+        for (a, &(_, _, wu)) in rule.iter().enumerate() {
+            for (b, &(_, _, wv)) in rule.iter().enumerate() {
+                sum += wu * wv * next[a * n + b];
             }
         }
         grid = next;
