@@ -266,7 +266,7 @@ pub const LANES: usize = 8;
 /// clipped path, which the caller takes. Lanes past `xs.len()` are left at 0.
 ///
 /// One point costs about 4 divisions, a square root and a rational `atan` per edge, all
-/// in a chain; side by side, 8 points go through them in about the time of 2.
+/// in a chain; side by side, 8 points go through them in about the time of 3.
 #[inline(always)]
 pub fn point_to_polygon_lanes(
     xs: &[DVec3],

@@ -342,10 +342,16 @@ pub fn polygon_distance(a: &[DVec3], b: &[DVec3]) -> f64 {
 /// `n_x` is a unit normal.
 #[inline]
 pub fn point_factor(x: DVec3, n_x: DVec3, r: &Receiver) -> f64 {
-    if r.normal.dot(x - r.centroid) <= 0.0 {
+    if behind(x, r) {
         return 0.0;
     }
     point_to_polygon_unit(x, n_x, r.poly)
+}
+
+/// Whether `x` is not in front of the one-sided receiver `r`'s plane (it sees none of it).
+#[inline]
+fn behind(x: DVec3, r: &Receiver) -> bool {
+    r.normal.dot(x - r.centroid) <= 0.0
 }
 
 /// [`point_factor`] at every point of `xs`, into `out` (cleared first), bit for bit the
@@ -364,7 +370,7 @@ pub fn point_factors(xs: &[DVec3], n_x: DVec3, r: &Receiver, out: &mut Vec<f64>)
             for chunk in xs.chunks(LANES) {
                 let clip = point_to_polygon_lanes(chunk, n_x, r.poly, &mut lane);
                 for (l, &x) in chunk.iter().enumerate() {
-                    out.push(if r.normal.dot(x - r.centroid) <= 0.0 {
+                    out.push(if behind(x, r) {
                         0.0
                     } else if clip >> l & 1 == 1 {
                         point_to_polygon_unit(x, n_x, r.poly)

@@ -149,16 +149,14 @@ fn corners(p: &PatchSet, i: usize) -> ([DVec3; 4], usize) {
     p.corner_points(i)
 }
 
-/// Signed distances of the corners of `b` from the plane of `a`, as (min, max). Read
-/// through the corner indices, without gathering the corners first: it runs several times
-/// for each of the N² pairs.
+/// Signed distances of the corners of `b` from the plane of `a`, as (min, max). It runs
+/// several times for each of the N² pairs, so the corners are read in place
+/// ([`PatchSet::corner_iter`]).
 #[inline]
 fn plane_range(p: &PatchSet, a: usize, b: usize) -> (f64, f64) {
     let (n, c) = (p.normal[a], p.centroid[a]);
-    p.corners[b]
-        .iter()
-        .take_while(|&&v| v != crate::mesh::NONE)
-        .map(|&v| n.dot(p.vertices[v as usize] - c))
+    p.corner_iter(b)
+        .map(|q| n.dot(q - c))
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), d| {
             (lo.min(d), hi.max(d))
         })

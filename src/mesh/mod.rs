@@ -118,6 +118,16 @@ impl PatchSet {
         (1e-9 * self.diagonal).max(self.magnitude * f64::EPSILON * 4096.0)
     }
 
+    /// Corner positions of patch `i` (3 or 4), read through the corner indices without
+    /// gathering them into an array (for tests run on each of many pairs).
+    #[inline]
+    pub fn corner_iter(&self, i: usize) -> impl Iterator<Item = DVec3> + '_ {
+        self.corners[i]
+            .iter()
+            .take_while(|&&v| v != NONE)
+            .map(|&v| self.vertices[v as usize])
+    }
+
     /// Corner positions of patch `i` (3 or 4).
     pub fn corner_points(&self, i: usize) -> ([DVec3; 4], usize) {
         let c = self.corners[i];
