@@ -397,3 +397,38 @@ fn a_direct_solve_over_its_limit_is_refused_before_any_form_factor() {
     assert!(!stages.iter().any(|s| s == "form factors"), "{stages:?}");
     assert!(!dir.join("out").exists());
 }
+
+/// Every command's `--help` is plain text: no rustdoc link (`` [`Name`] ``) from a doc
+/// comment leaks into what a user reads.
+#[test]
+fn help_has_no_rustdoc_links() {
+    let top = radiosity(&["--help"]);
+    assert!(top.status.success());
+    let text = String::from_utf8_lossy(&top.stdout).to_string();
+    let commands: Vec<String> = text
+        .lines()
+        .skip_while(|l| !l.starts_with("Commands:"))
+        .skip(1)
+        .take_while(|l| l.starts_with("  "))
+        .filter_map(|l| l.split_whitespace().next().map(str::to_string))
+        .filter(|c| c != "help")
+        .collect();
+    assert!(commands.len() >= 5, "{commands:?}");
+    for c in [None].into_iter().chain(commands.iter().map(Some)) {
+        let args: Vec<&str> = c
+            .map(String::as_str)
+            .into_iter()
+            .chain(["--help"])
+            .collect();
+        let out = radiosity(&args);
+        assert!(out.status.success(), "{args:?}");
+        let help = String::from_utf8_lossy(&out.stdout);
+        for (k, line) in help.lines().enumerate() {
+            assert!(
+                !line.contains("[`") && !line.contains("`]"),
+                "{args:?} line {}: {line}",
+                k + 1
+            );
+        }
+    }
+}

@@ -362,15 +362,20 @@ pub trait Solver {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum Method {
     /// Jacobi sweeps, rows in parallel ([`Jacobi`]).
+    #[value(help = "Jacobi sweeps, rows in parallel")]
     Jacobi,
     /// Gauss-Seidel sweeps ([`GaussSeidel`]).
     #[default]
+    #[value(help = "Gauss-Seidel sweeps")]
     GaussSeidel,
     /// Progressive refinement by shooting ([`Progressive`]).
+    #[value(help = "Progressive refinement by shooting")]
     Progressive,
     /// Preconditioned conjugate gradients on the symmetric form ([`Cg`]).
+    #[value(help = "Preconditioned conjugate gradients on the symmetric form")]
     Cg,
     /// Dense LU with partial pivoting, up to 4096 patches ([`Direct`]).
+    #[value(help = "Dense LU with partial pivoting, up to 4096 patches")]
     Direct,
 }
 
