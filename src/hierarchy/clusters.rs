@@ -1417,7 +1417,7 @@ pub struct PieceFactor {
 }
 
 /// Segments with which an element checks its view of a cluster link's source
-/// ([`Expansion::checked`]).
+/// (`Expansion::checked`).
 pub const CHECK_POINTS: usize = 4;
 
 /// Draws of a point of the element in front of a checked point's plane
@@ -1466,7 +1466,7 @@ impl Expansion<'_> {
     /// piece of the link's source ([`Refiner::pieces`], [`piece_factor`]), the standard
     /// error combining the visible fraction's and the piece's sampling, the bound the
     /// one-point rules'; nothing for a buried element. With `sight`, the element traces its
-    /// own view of the loudest links' sources ([`Sight`], [`Terms::factor`]); the rays cast
+    /// own view of the loudest links' sources ([`Sight`], `Terms::factor`); the rays cast
     /// are returned. Called per element where its list is used, so that no list of every
     /// element's entries is held at once (at 10^5 triangles they were most of the bake's
     /// memory).
