@@ -130,11 +130,11 @@ impl PatchSet {
 
     /// Corner positions of patch `i` (3 or 4).
     pub fn corner_points(&self, i: usize) -> ([DVec3; 4], usize) {
-        let c = self.corners[i];
-        let n = if c[3] == NONE { 3 } else { 4 };
         let mut p = [DVec3::ZERO; 4];
-        for k in 0..n {
-            p[k] = self.vertices[c[k] as usize];
+        let mut n = 0;
+        for (slot, q) in p.iter_mut().zip(self.corner_iter(i)) {
+            *slot = q;
+            n += 1;
         }
         (p, n)
     }
