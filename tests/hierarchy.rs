@@ -826,12 +826,12 @@ fn clustered_and_unclustered_at_ten_thousand_triangles() {
     }
 }
 
+/// One bake's output points ([`output_points`]) and leaf points ([`points`]).
+type Bake<'a> = (&'a [Option<f64>], &'a [(usize, Option<f64>)]);
+
 /// Relative differences of two bakes' output points ([`output_points`]) where both have a
 /// value and neither point's leaf is buried ([`points`]).
-fn output_differences(
-    (qa, pa): (&[Option<f64>], &[(usize, Option<f64>)]),
-    (qb, pb): (&[Option<f64>], &[(usize, Option<f64>)]),
-) -> Vec<f64> {
+fn output_differences((qa, pa): Bake<'_>, (qb, pb): Bake<'_>) -> Vec<f64> {
     qa.iter()
         .zip(qb)
         .zip(pa.iter().zip(pb))
