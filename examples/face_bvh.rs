@@ -1,10 +1,10 @@
 //! The raw `rtcIntersect16` loop over a hemisphere stage's recorded rays, traced against
-//! two Embree scenes of the same surfaces: the patch triangles (what the flat path
-//! traces) and the scene's input faces alone. Patches are regular grids of the input
-//! faces (`mesh`), so a hit on a face could be mapped to its patch from the face's
-//! coordinates; this measures what the smaller scene saves Embree where the patch BVH no
-//! longer stays in the caches (docs/PERFORMANCE.md, section 1, *Embree's share of the
-//! bake*).
+//! two Embree scenes of the same surfaces: the patch triangles (what the flat path traced
+//! before, and still traces for a patch set without face grids) and the scene's faces
+//! traced whole (what [`Visibility::new`] builds now: patches are regular grids of the
+//! input faces, so a hit on a face names its patch from the face's coordinates). This
+//! measures what the smaller scene saves Embree where the patch BVH no longer stays in the
+//! caches (docs/PERFORMANCE.md, section 1, *Embree's share of the bake*).
 //!
 //! `cargo run --release --example face_bvh -- PATCHES`: the Cornell box at about PATCHES
 //! patches (default 300,000), 4 x 4 directions x 4 replicates per patch, one thread,
@@ -26,20 +26,23 @@ fn main() {
         .unwrap_or(300_000);
     let scene = Scene::load("cornell").expect("built-in scene");
     let p = PatchSet::build(&scene, Resolution::Patches(n)).expect("mesh");
-    // One patch per input face.
-    let faces = PatchSet::build(&scene, Resolution::MaxEdge(f64::MAX)).expect("faces");
+    // The same patches without their face grids: traced by their triangles.
+    let vis = Visibility::new(&PatchSet {
+        grids: Vec::new(),
+        ..p.clone()
+    })
+    .expect("Embree scene");
+    let vis_faces = Visibility::new(&p).expect("Embree scene");
     eprintln!(
-        "{} patches ({} triangles); {} input faces ({} triangles)",
+        "{} patches ({} triangles traced); {} faces traced whole ({} triangles)",
         p.len(),
-        p.triangles.len(),
-        faces.len(),
-        faces.triangles.len()
+        vis.traced_triangles(),
+        vis_faces.whole_faces(),
+        vis_faces.traced_triangles()
     );
-    let vis = Visibility::new(&p).expect("Embree scene");
-    let vis_faces = Visibility::new(&faces).expect("Embree scene");
     let ctx = Context {
         patches: &p,
-        vis: &vis,
+        vis: &vis_faces,
         seed: 1,
     };
     let choice = EstimatorChoice::Hemisphere {

@@ -7,8 +7,11 @@
 //! triangles, with `nu`, `nv`, `n` chosen so that no patch edge is longer than the target
 //! length; a target patch count is turned into that length by a short search.
 //!
-//! The patch triangles are also what the visibility module traces against, so a ray hit
-//! maps straight back to its patch through [`PatchSet::tri_patch`].
+//! Each face's grid is kept ([`PatchSet::grids`]: its first patch, its corners and its
+//! counts), so that the visibility module can trace a planar face whole and name the
+//! patch a ray hits from the hit's coordinates on the face; where there is no grid (sets
+//! built elsewhere, such as the hierarchy's elements) it traces the patch triangles, and
+//! a hit maps back to its patch through [`PatchSet::tri_patch`].
 //!
 //! Geometry is `f64` throughout (corners, normals, centroids, the f64 warp
 //! [`PatchSampler::point`]); `f32` appears only where rays are made for Embree
@@ -72,6 +75,51 @@ pub struct PatchSet {
     pub magnitude: f64,
     /// The edge length the subdivision used.
     pub max_edge: f64,
+    /// How each scene face was cut into patches, by face index; empty for sets not made
+    /// by [`PatchSet::build`].
+    pub grids: Vec<FaceGrid>,
+}
+
+/// How one scene face was cut into patches by [`PatchSet::build`]. Its patches are
+/// consecutive from `first`, in the order the layout gives.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FaceGrid {
+    /// The face's first patch.
+    pub first: u32,
+    /// The face's corners as indices into [`PatchSet::vertices`] (counter-clockwise from
+    /// the front, the 4th [`NONE`] for a triangle), for [`Layout::Quad`] and
+    /// [`Layout::Triangle`].
+    pub corners: [u32; 4],
+    /// How the patches are laid out.
+    pub layout: Layout,
+}
+
+/// The patch layout of a [`FaceGrid`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Layout {
+    /// Corners `p0..p3`, cut at `s = a / nu` and `t = b / nv` of the bilinear map
+    /// `q(s, t) = p0 (1-s)(1-t) + p1 s (1-t) + p2 s t + p3 (1-s) t`: patch `b nu + a`
+    /// is the cell `[a, a+1] / nu x [b, b+1] / nv`.
+    Quad {
+        /// Cells along `p0 -> p1`.
+        nu: u32,
+        /// Cells along `p0 -> p3`.
+        nv: u32,
+    },
+    /// Corners `p0, p1, p2`, cut into `n²` similar triangles: with the point
+    /// `p0 + (p1 - p0) x + (p2 - p0) y`, row `r = ⌊n y⌋` holds patches from `r (2n - r)`,
+    /// the cell `a = ⌊n x⌋` of the row its upright triangle `2a` and the inverted one
+    /// after it `2a + 1`.
+    Triangle {
+        /// Cuts along each side.
+        n: u32,
+    },
+    /// The back of a two-sided face: its patches are the twins of face `front`'s, in the
+    /// same order.
+    Back {
+        /// The face whose back this is.
+        front: u32,
+    },
 }
 
 impl PatchSet {
@@ -200,11 +248,41 @@ impl PatchSet {
         let mut range = Vec::with_capacity(scene.faces.len());
         for (fi, face) in scene.faces.iter().enumerate() {
             let start = set.len();
-            match range.get(face.twin as usize) {
-                Some(&(a, b)) if face.back => set.add_back(a..b, face, fi as u32),
+            let layout = match range.get(face.twin as usize) {
+                Some(&(a, b)) if face.back => {
+                    set.add_back(a..b, face, fi as u32);
+                    Layout::Back { front: face.twin }
+                }
                 _ => set.add_face(scene, fi as u32, face, max_edge),
-            }
+            };
             range.push((start, set.len()));
+            let c = |k: usize| set.corners[k];
+            let corners = match layout {
+                Layout::Quad { nu, nv } => {
+                    let (nu, nv) = (nu as usize, nv as usize);
+                    [
+                        c(start)[0],
+                        c(start + nu - 1)[1],
+                        c(start + nu * nv - 1)[2],
+                        c(start + nu * (nv - 1))[3],
+                    ]
+                }
+                Layout::Triangle { n } => {
+                    let n = n as usize;
+                    [
+                        c(start)[0],
+                        c(start + 2 * (n - 1))[1],
+                        c(start + n * n - 1)[2],
+                        NONE,
+                    ]
+                }
+                Layout::Back { .. } => [NONE; 4],
+            };
+            set.grids.push(FaceGrid {
+                first: start as u32,
+                corners,
+                layout,
+            });
         }
         if !set.twin.is_empty() {
             set.twin.resize(set.len(), NONE);
@@ -216,7 +294,7 @@ impl PatchSet {
         Ok(set)
     }
 
-    fn add_face(&mut self, scene: &Scene, fi: u32, face: &Face, h: f64) {
+    fn add_face(&mut self, scene: &Scene, fi: u32, face: &Face, h: f64) -> Layout {
         let p: Vec<DVec3> = face
             .corner_slice()
             .iter()
@@ -244,6 +322,10 @@ impl PatchSet {
                     self.push_patch(c, face, fi);
                 }
             }
+            Layout::Quad {
+                nu: nu as u32,
+                nv: nv as u32,
+            }
         } else {
             let n = cells(p[1] - p[0], h)
                 .max(cells(p[2] - p[1], h))
@@ -270,6 +352,7 @@ impl PatchSet {
                     }
                 }
             }
+            Layout::Triangle { n: n as u32 }
         }
     }
 

@@ -171,6 +171,13 @@ pub struct RawHit {
     pub prim: u32,
     /// Ray parameter of the hit (distance when the direction has unit length).
     pub t: f32,
+    /// Barycentric coordinates of the hit in its triangle `(v0, v1, v2)`: the point is
+    /// `(1 - u - v) v0 + u v1 + v v2`.
+    pub u: f32,
+    /// See `u`.
+    pub v: f32,
+    /// True when the ray met the side the triangle's winding normal points to.
+    pub against: bool,
 }
 
 /// The valid mask of a 16-wide packet query, aligned like the packet.
@@ -239,6 +246,15 @@ impl HitPacket16 {
         };
         p.rayhit.ray.mask = [u32::MAX; 16];
         HitPacket16(p)
+    }
+}
+
+impl HitPacket16 {
+    /// Barycentric coordinates `(u, v)` of lane `k`'s hit after
+    /// [`EmbreeScene::intersect16_soa`] (meaningful only where it reported a hit).
+    #[inline(always)]
+    pub fn uv(&self, k: usize) -> (f32, f32) {
+        (self.0.rayhit.hit.u[k], self.0.rayhit.hit.v[k])
     }
 }
 
@@ -592,6 +608,8 @@ impl EmbreeScene {
         let o = &mut rh.hit;
         o.geomID[lo..lo + 8].copy_from_slice(&hit.geomID);
         o.primID[lo..lo + 8].copy_from_slice(&hit.primID);
+        o.u[lo..lo + 8].copy_from_slice(&hit.u);
+        o.v[lo..lo + 8].copy_from_slice(&hit.v);
         o.Ng_x[lo..lo + 8].copy_from_slice(&hit.Ng_x);
         o.Ng_y[lo..lo + 8].copy_from_slice(&hit.Ng_y);
         o.Ng_z[lo..lo + 8].copy_from_slice(&hit.Ng_z);
@@ -611,9 +629,13 @@ impl EmbreeScene {
         // SAFETY: the scene is committed; the ray-hit has room for the widest RTCHit layout.
         unsafe { sys::rtcIntersect1(self.scene, &mut rh.rayhit, null_mut()) };
         let hit = &rh.rayhit.hit;
+        let d = hit.Ng_x * dir.x + hit.Ng_y * dir.y + hit.Ng_z * dir.z;
         (hit.geomID != sys::RTC_INVALID_GEOMETRY_ID).then_some(RawHit {
             prim: hit.primID,
             t: rh.rayhit.ray.tfar,
+            u: hit.u,
+            v: hit.v,
+            against: d * NG_SIGN < 0.0,
         })
     }
 }
@@ -773,8 +795,21 @@ mod tests {
             for k in 0..n {
                 let o = Vec3::from(org[k]);
                 let d = Vec3::from(dir[k]);
-                let single = scene.intersect1(o, d, 0.0, f32::INFINITY).map(|h| h.prim);
-                assert_eq!(Some(out[k]), single, "{w}, n = {n}, ray {k}");
+                let one = scene.intersect1(o, d, 0.0, f32::INFINITY).unwrap();
+                assert_eq!(out[k], one.prim, "{w}, n = {n}, ray {k}");
+                assert_eq!(one.against, against[k], "{w}, n = {n}, ray {k}");
+                // Barycentrics: triangle 0 is (0,0,0), (1,0,0), (0,1,0), so u = x and v = y;
+                // triangle 1 is (0,0,-1), (0,1,-1), (1,0,-1), so u = y and v = x.
+                let (u, v) = p.uv(k);
+                assert!(
+                    (u - one.u).abs() < 1e-6 && (v - one.v).abs() < 1e-6,
+                    "{w} {n} {k}"
+                );
+                let (x, y) = if k % 2 == 0 { (u, v) } else { (v, u) };
+                assert!(
+                    (x - o.x).abs() < 1e-6 && (y - o.y).abs() < 1e-6,
+                    "{w} {n} {k}"
+                );
                 // Down from z = 1: hits triangle 0 from the side of its normal (+z).
                 // Up from z = -2: hits triangle 1 from the side of its normal (-z).
                 assert!(against[k], "{w}, n = {n}, ray {k}");

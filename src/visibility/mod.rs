@@ -26,10 +26,10 @@ mod embree;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Instant;
 
-use glam::{DVec3, Vec3};
+use glam::{DVec2, DVec3, Vec3};
 
 use crate::error::Result;
-use crate::mesh::PatchSet;
+use crate::mesh::{Layout, PatchSet, NONE};
 
 pub use embree::flush_denormals;
 pub use embree::PacketWidth;
@@ -202,18 +202,20 @@ pub struct Hit {
     pub t: f32,
 }
 
-/// Visibility queries over the patch triangles of a [`PatchSet`].
+/// Visibility queries over the faces of a [`PatchSet`]: each planar face of its
+/// [`PatchSet::grids`] traced whole (one or two triangles; see [`Whole`]), every other
+/// face by its patch triangles.
 pub struct Visibility {
     scene: EmbreeScene,
-    tri_patch: Vec<u32>,
-    /// Patch of each triangle, with bit 31 set when the triangle's winding normal points
-    /// to the patch's front side ([`Visibility::first_front_hits_soa`]).
+    /// For each traced triangle: the patch it belongs to, or with [`WHOLE`] set the face
+    /// it is half of; with [`ALONG`] set when its winding normal points to the patch's (or
+    /// face's) front side ([`Visibility::first_front_hits_soa`]).
     tri_front: Vec<u32>,
-    /// For each triangle, the patch a ray meeting its back reaches: the twin of its patch
-    /// (the other side of a two-sided face, lying on it) or [`NO_HIT`].
+    /// For each patch triangle, the patch a ray meeting its back reaches: the twin of its
+    /// patch (the other side of a two-sided face, lying on it) or [`NO_HIT`].
     tri_back: Vec<u32>,
-    /// Patch normals, kept only when some patch has a twin (for [`Visibility::first_hit`]).
-    twin_normal: Vec<DVec3>,
+    /// The faces traced whole.
+    wholes: Vec<Whole>,
     offsets: Offsets,
     /// Whether to time the Embree calls ([`Visibility::time_queries`]), and the
     /// nanoseconds spent inside them so far, summed over threads.
@@ -232,44 +234,59 @@ pub const PACKET_MIN: usize = 8;
 /// Bit of [`Visibility`]'s `tri_front` entries: winding normal along the patch normal.
 const ALONG: u32 = 1 << 31;
 
+/// Bit of [`Visibility`]'s `tri_front` entries: the triangle is half `h` of the face traced
+/// whole `w` ([`Whole`]), and the bits below this one hold `2 w + h`.
+const WHOLE: u32 = 1 << 30;
+
 impl Visibility {
-    /// Builds the acceleration structure over the patches' triangles.
+    /// Builds the acceleration structure: over the faces of `patches.grids` that are
+    /// planar, traced whole, and over the patch triangles of the others (or of every patch,
+    /// when the set has no grids).
     pub fn new(patches: &PatchSet) -> Result<Visibility> {
+        let offsets = Offsets::of(patches);
+        let t = Traced::of(patches, offsets);
         let v32: Vec<Vec3> = patches.vertices.iter().map(|v| v.as_vec3()).collect();
-        let scene = EmbreeScene::new(&v32, &patches.triangles)?;
-        let v = &patches.vertices;
-        let tri_front = patches
-            .triangles
-            .iter()
-            .zip(&patches.tri_patch)
-            .map(|(t, &p)| {
-                let [a, b, c] = t.map(|k| v[k as usize]);
-                let along = (b - a).cross(c - a).dot(patches.normal[p as usize]) > 0.0;
-                p | if along { ALONG } else { 0 }
-            })
-            .collect();
-        // Front and back of a two-sided face lie on each other: a ray meets both at one
-        // distance, and Embree reports either; from the back of one it has met the front
-        // of the other.
-        let tri_back = patches
-            .tri_patch
-            .iter()
-            .map(|&p| patches.twin_of(p as usize).map_or(NO_HIT, |t| t as u32))
-            .collect();
+        let scene = EmbreeScene::new(&v32, &t.triangles)?;
         Ok(Visibility {
             scene,
-            tri_patch: patches.tri_patch.clone(),
-            tri_front,
-            tri_back,
-            twin_normal: if patches.twin.is_empty() {
-                Vec::new()
-            } else {
-                patches.normal.clone()
-            },
-            offsets: Offsets::of(patches),
+            tri_front: t.front,
+            tri_back: t.back,
+            wholes: t.wholes,
+            offsets,
             timing: AtomicBool::new(false),
             query_nanos: AtomicU64::new(0),
         })
+    }
+
+    /// Number of triangles in the acceleration structure.
+    pub fn traced_triangles(&self) -> usize {
+        self.tri_front.len()
+    }
+
+    /// Number of faces traced whole ([`Whole`]).
+    pub fn whole_faces(&self) -> usize {
+        self.wholes.len()
+    }
+
+    /// The patch on the front side of the point with barycentrics `(u, v)` of traced
+    /// triangle `prim`, the patch on its back side ([`NO_HIT`] when the face is one-sided),
+    /// and whether the triangle's winding normal points to the front.
+    #[inline(always)]
+    fn sides(&self, prim: u32, u: f32, v: f32) -> (u32, u32, bool) {
+        let t = self.tri_front[prim as usize];
+        let along = t & ALONG != 0;
+        if t & WHOLE == 0 {
+            return (t & !ALONG, self.tri_back[prim as usize], along);
+        }
+        let k = t & !(ALONG | WHOLE);
+        let w = &self.wholes[(k >> 1) as usize];
+        let cell = w.cut.cell(k & 1, f64::from(u), f64::from(v));
+        let back = if w.back == NO_HIT {
+            NO_HIT
+        } else {
+            w.back + cell
+        };
+        (w.first + cell, back, along)
     }
 
     /// Starts (or stops) timing the estimators' batches of queries ([`Tracer`]'s two
@@ -444,14 +461,11 @@ impl Visibility {
                 for ((org, dir), out) in rays.packets16().zip(out[..n].chunks_mut(16)) {
                     self.scene
                         .intersect16_soa(&mut packet, org, dir, out, &mut against);
-                    for (v, &a) in out.iter_mut().zip(&against) {
+                    for (k, (v, &a)) in out.iter_mut().zip(&against).enumerate() {
                         if *v != u32::MAX {
-                            let t = self.tri_front[*v as usize];
-                            *v = if a == (t & ALONG != 0) {
-                                t & !ALONG
-                            } else {
-                                self.tri_back[*v as usize]
-                            };
+                            let (u, w) = packet.uv(k);
+                            let (front, back, along) = self.sides(*v, u, w);
+                            *v = if a == along { front } else { back };
                         }
                     }
                 }
@@ -467,14 +481,342 @@ impl Visibility {
         self.scene
             .intersect1(org, dir.as_vec3(), 0.0, f32::INFINITY)
             .map(|h| {
-                let k = h.prim as usize;
-                let mut patch = self.tri_patch[k];
-                let twin = self.tri_back[k];
-                if twin != NO_HIT && self.twin_normal[patch as usize].dot(dir) > 0.0 {
-                    // The ray meets the back of `patch`: the front of its twin.
-                    patch = twin;
-                }
+                let (front, back, along) = self.sides(h.prim, h.u, h.v);
+                // Meeting the back of a two-sided face is meeting the front of its twin.
+                let patch = if h.against == along || back == NO_HIT {
+                    front
+                } else {
+                    back
+                };
                 Hit { patch, t: h.t }
             })
+    }
+}
+
+/// A planar face traced as its own one or two triangles instead of its patches' (a quad
+/// `p0..p3` as `(p0, p1, p2)` and `(p0, p2, p3)`, the way its patches are split). A hit
+/// names its patch by where it falls on the face: from the hit's barycentric coordinates,
+/// the face's grid cell ([`Cut::cell`]). The patches' triangles tile the face exactly (the
+/// cells of a planar bilinear grid have straight sides), so the two scenes answer alike up
+/// to the `f32` rounding of their vertices; a ray within that rounding of a patch edge may
+/// be given to either neighbour in either scene. The acceleration structure then holds the
+/// scene's faces, not its patches: on the Cornell box at 299,681 patches (19 faces)
+/// Embree's closest-hit queries took 0.32-0.37 of the time (`docs/PERFORMANCE.md`,
+/// section 1, *A scene of the input faces*).
+#[derive(Clone, Copy, Debug)]
+struct Whole {
+    /// The face's first patch.
+    first: u32,
+    /// The first patch of its back (the twins of its patches, in the same order), or
+    /// [`NO_HIT`] for a one-sided face.
+    back: u32,
+    /// Its grid.
+    cut: Cut,
+}
+
+/// The grid of a face traced whole ([`crate::mesh::Layout`]).
+#[derive(Clone, Copy, Debug)]
+enum Cut {
+    /// A triangle cut into `n²` similar triangles.
+    Triangle { n: u32 },
+    /// A parallelogram cut into `nu x nv` parallelograms.
+    Parallelogram { nu: u32, nv: u32 },
+    /// Any other planar convex quad, cut along its bilinear map's lines; `q` holds
+    /// `p1 - p0`, `p2 - p0`, `p3 - p0` in coordinates of the face's plane.
+    Quad { nu: u32, nv: u32, q: [DVec2; 3] },
+}
+
+impl Cut {
+    /// The patch, counted from the face's first, of the point with barycentrics `(u, v)`
+    /// in half `h` of the face (its triangle `(p0, p1, p2)` or `(p0, p2, p3)`). Points just
+    /// outside the face (rounding) go to the nearest cell.
+    #[inline(always)]
+    fn cell(&self, h: u32, u: f64, v: f64) -> u32 {
+        match *self {
+            Cut::Triangle { n } => {
+                let (x, y) = (u * f64::from(n), v * f64::from(n));
+                let r = (y.max(0.0) as u32).min(n - 1);
+                let a = (x.max(0.0) as u32).min(n - 1 - r);
+                let down = x - f64::from(a) + y - f64::from(r) > 1.0 && a + 1 < n - r;
+                r * (2 * n - r) + 2 * a + u32::from(down)
+            }
+            Cut::Parallelogram { nu, nv } => {
+                let (s, t) = if h == 0 { (u + v, v) } else { (u, u + v) };
+                grid_cell(s, t, nu, nv)
+            }
+            Cut::Quad { nu, nv, q } => {
+                let x = if h == 0 {
+                    q[0] * u + q[1] * v
+                } else {
+                    q[1] * u + q[2] * v
+                };
+                let (s, t) = inverse_bilinear(q, x);
+                grid_cell(s, t, nu, nv)
+            }
+        }
+    }
+}
+
+/// Patch `b nu + a` of the cell of `(s, t)` in a `nu x nv` grid of the unit square,
+/// clamped into it.
+#[inline(always)]
+fn grid_cell(s: f64, t: f64, nu: u32, nv: u32) -> u32 {
+    let a = ((s * f64::from(nu)).max(0.0) as u32).min(nu - 1);
+    let b = ((t * f64::from(nv)).max(0.0) as u32).min(nv - 1);
+    b * nu + a
+}
+
+/// `(s, t)` with `e s + f t + g s t = x` for the planar quad with corners `0, q[0], q[1],
+/// q[2]` (`e = q[0]`, `f = q[2]`, `g = q[1] - q[0] - q[2]`), the root nearest the unit
+/// square. Crossing the equation with `f + g s` removes `t` and leaves
+/// `(e x g) s² + (e x f - x x g) s - x x f = 0` (2D cross products).
+#[inline(always)]
+fn inverse_bilinear(q: [DVec2; 3], x: DVec2) -> (f64, f64) {
+    let (e, f) = (q[0], q[2]);
+    let g = q[1] - q[0] - q[2];
+    let (a, b, c) = (e.perp_dot(g), e.perp_dot(f) - x.perp_dot(g), -x.perp_dot(f));
+    let s = if a.abs() <= 1e-12 * b.abs() {
+        -c / b
+    } else {
+        let root = (b * b - 4.0 * a * c).max(0.0).sqrt();
+        let w = -0.5 * (b + root.copysign(b));
+        let (r1, r2) = (w / a, c / w);
+        let off = |r: f64| (r - r.clamp(0.0, 1.0)).abs();
+        if off(r1) <= off(r2) || !r2.is_finite() {
+            r1
+        } else {
+            r2
+        }
+    };
+    let d = f + g * s;
+    let t = (x - e * s).dot(d) / d.length_squared();
+    (s, t)
+}
+
+/// What [`Visibility::new`] hands Embree, and how to read its hits.
+struct Traced {
+    triangles: Vec<[u32; 3]>,
+    front: Vec<u32>,
+    back: Vec<u32>,
+    wholes: Vec<Whole>,
+}
+
+impl Traced {
+    /// The faces of `patches.grids` that can be traced whole, whole; every other face's
+    /// patch triangles as they are. A quad goes whole when its fourth corner lies within
+    /// `1e-3` of the ray offset `eps` of the plane of the other three (closer than the
+    /// `f32` rounding of the scene's coordinates, so that it changes no answer beyond
+    /// rounding); its back (of a two-sided face) goes with it.
+    fn of(patches: &PatchSet, offsets: Offsets) -> Traced {
+        let v = &patches.vertices;
+        let mut t = Traced {
+            triangles: Vec::new(),
+            front: Vec::new(),
+            back: Vec::new(),
+            wholes: Vec::new(),
+        };
+        let mut whole_of = vec![NO_HIT; patches.grids.len()];
+        let fits = patches.grids.len() < (WHOLE / 2) as usize;
+        for (fi, g) in patches.grids.iter().enumerate() {
+            let cut = match g.layout {
+                _ if !fits => None,
+                Layout::Triangle { n } => Some(Cut::Triangle { n }),
+                Layout::Quad { nu, nv } => {
+                    let p = g.corners.map(|k| v[k as usize]);
+                    quad_cut(p, nu, nv, f64::from(offsets.eps) * 1e-3)
+                }
+                Layout::Back { .. } => None,
+            };
+            if let Some(cut) = cut {
+                whole_of[fi] = t.wholes.len() as u32;
+                t.wholes.push(Whole {
+                    first: g.first,
+                    back: NO_HIT,
+                    cut,
+                });
+            }
+        }
+        let normal = &patches.normal;
+        let add = |t: &mut Traced, tri: [u32; 3], front: u32, n: DVec3, back: u32| {
+            let [a, b, c] = tri.map(|k| v[k as usize]);
+            let along = (b - a).cross(c - a).dot(n) > 0.0;
+            t.triangles.push(tri);
+            t.front.push(front | if along { ALONG } else { 0 });
+            t.back.push(back);
+        };
+        for (fi, g) in patches.grids.iter().enumerate() {
+            let w = whole_of[fi];
+            if w != NO_HIT {
+                let c = g.corners;
+                let n = normal[g.first as usize];
+                add(&mut t, [c[0], c[1], c[2]], WHOLE | (2 * w), n, NO_HIT);
+                if c[3] != NONE {
+                    add(&mut t, [c[0], c[2], c[3]], WHOLE | (2 * w + 1), n, NO_HIT);
+                }
+            } else if let Layout::Back { front } = g.layout {
+                let wf = whole_of[front as usize];
+                if wf != NO_HIT {
+                    // Traced with its front, which lies on it.
+                    t.wholes[wf as usize].back = g.first;
+                }
+            }
+        }
+        // Every patch not on a face traced whole (all of them when there are no grids).
+        for (tri, &p) in patches.triangles.iter().zip(&patches.tri_patch) {
+            let face = patches.face[p as usize] as usize;
+            let on_whole = match patches.grids.get(face).map(|g| g.layout) {
+                Some(Layout::Back { front }) => whole_of[front as usize] != NO_HIT,
+                Some(_) => whole_of[face] != NO_HIT,
+                None => false,
+            };
+            if !on_whole {
+                let twin = patches.twin_of(p as usize).map_or(NO_HIT, |t| t as u32);
+                add(&mut t, *tri, p, normal[p as usize], twin);
+            }
+        }
+        t
+    }
+}
+
+/// The [`Cut`] of a quad face with corners `p`, if it is planar within `tol`.
+fn quad_cut(p: [DVec3; 4], nu: u32, nv: u32, tol: f64) -> Option<Cut> {
+    let n = (p[1] - p[0]).cross(p[2] - p[0]).normalize_or_zero();
+    if n == DVec3::ZERO || n.dot(p[3] - p[0]).abs() > tol {
+        return None;
+    }
+    let skew = p[0] + p[2] - p[1] - p[3];
+    if skew.length_squared() <= 1e-24 * (p[2] - p[0]).length_squared() {
+        return Some(Cut::Parallelogram { nu, nv });
+    }
+    let x = (p[1] - p[0]).normalize();
+    let y = n.cross(x);
+    let at = |q: DVec3| DVec2::new((q - p[0]).dot(x), (q - p[0]).dot(y));
+    Some(Cut::Quad {
+        nu,
+        nv,
+        q: [at(p[1]), at(p[2]), at(p[3])],
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::Resolution;
+    use crate::scene::{obj, Scene};
+    use std::path::Path;
+
+    /// A scene of faces apart from each other: a square, a skewed parallelogram, a
+    /// trapezoid, a triangle (traced whole) and a quad 0.2% off planar (by its patches).
+    fn faces(two_sided: bool) -> Scene {
+        let text = "\
+v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n\
+v 3 0 0\nv 3 1 0.3\nv 3 1.4 1.3\nv 3 0.4 1\n\
+v 0 3 0\nv 0.5 3 1\nv 1.5 3 1\nv 2 3 0\n\
+v -3 0 0\nv -2 0.5 0.2\nv -2.6 1.1 0.9\n\
+v 0 -3 0\nv 1 -3 0\nv 1 -3 1\nv 0 -3.002 1\n\
+f 1 2 3 4\nf 5 6 7 8\nf 9 10 11 12\nf 13 14 15\nf 16 17 18 19\n";
+        let mut s = obj::parse("faces", Path::new("faces.obj"), text, &|_| unreachable!()).unwrap();
+        s.make_two_sided(two_sided);
+        s
+    }
+
+    /// Every patch of both scenes, hit at 16 inner points from the front, obliquely, and
+    /// from the back, is named alike by the faces traced whole and by the patch
+    /// triangles, and is the patch aimed at (or its twin, or nothing, from the back).
+    #[test]
+    fn whole_faces_name_the_patch_hit() {
+        for two_sided in [false, true] {
+            let patches = PatchSet::build(&faces(two_sided), Resolution::MaxEdge(0.13)).unwrap();
+            let whole = Visibility::new(&patches).unwrap();
+            let flat = Visibility::new(&PatchSet {
+                grids: Vec::new(),
+                ..patches.clone()
+            })
+            .unwrap();
+            assert_eq!(
+                whole.whole_faces(),
+                4,
+                "the off-planar quad goes by its patches"
+            );
+            assert!(whole.traced_triangles() < flat.traced_triangles() / 4);
+            let mut checked = 0;
+            for p in 0..patches.len() {
+                let n = patches.normal[p];
+                let side = n.any_orthonormal_vector();
+                let s = patches.sampler(p);
+                let twin = patches.twin_of(p).map_or(NO_HIT, |t| t as u32);
+                for (a, b) in (0..16).map(|k| {
+                    (
+                        0.1 + 0.8 * (k % 4) as f64 / 3.0,
+                        0.1 + 0.8 * (k / 4) as f64 / 3.0,
+                    )
+                }) {
+                    let x = s.point(a, b);
+                    for (dir, want) in [
+                        (-n, p as u32),
+                        ((side - n).normalize(), p as u32),
+                        (n, twin),
+                    ] {
+                        let o = (x - dir * 0.05).as_vec3();
+                        let d = dir.as_vec3();
+                        let rays = Rays {
+                            org: [&[o.x], &[o.y], &[o.z]],
+                            dir: [&[d.x], &[d.y], &[d.z]],
+                        };
+                        let (mut w, mut f) = ([0u32], [0u32]);
+                        whole.first_front_hits_soa(&rays, &mut w);
+                        flat.first_front_hits_soa(&rays, &mut f);
+                        assert_eq!(
+                            (w[0], f[0]),
+                            (want, want),
+                            "patch {p}, {dir:?}, two-sided {two_sided}"
+                        );
+                        let one = |v: &Visibility| {
+                            v.scene.intersect1(o, d, 0.0, f32::INFINITY).map(|h| {
+                                let (front, back, along) = v.sides(h.prim, h.u, h.v);
+                                if h.against == along {
+                                    front
+                                } else {
+                                    back
+                                }
+                            })
+                        };
+                        assert_eq!(one(&whole), Some(want), "patch {p}, {dir:?}");
+                        let hit = whole.first_hit(x - dir * 0.05, n, dir).map(|h| h.patch);
+                        let want_hit = if want == NO_HIT { p as u32 } else { want };
+                        assert_eq!(hit, Some(want_hit), "patch {p}, {dir:?}");
+                        checked += 1;
+                    }
+                }
+            }
+            assert!(checked > 3000, "{checked}");
+        }
+    }
+
+    /// The inverse bilinear map undoes the bilinear one on a trapezoid and on a kite.
+    #[test]
+    fn inverse_bilinear_undoes_the_map() {
+        for q in [
+            [
+                DVec2::new(2.0, 0.0),
+                DVec2::new(1.5, 1.0),
+                DVec2::new(0.5, 1.0),
+            ],
+            [
+                DVec2::new(1.0, -0.2),
+                DVec2::new(1.7, 1.1),
+                DVec2::new(0.1, 0.9),
+            ],
+        ] {
+            for k in 0..121 {
+                let (s, t) = (0.1 * (k % 11) as f64, 0.1 * (k / 11) as f64);
+                let x = q[0] * (s * (1.0 - t)) + q[1] * (s * t) + q[2] * ((1.0 - s) * t);
+                let (s2, t2) = inverse_bilinear(q, x);
+                assert!(
+                    (s2 - s).abs() < 1e-12 && (t2 - t).abs() < 1e-12,
+                    "{s} {t}: {s2} {t2}"
+                );
+            }
+        }
     }
 }
