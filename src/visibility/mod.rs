@@ -20,6 +20,17 @@
 //! never hits its own patches, and a point in a corner cannot leak through the wall it
 //! touches. Both bounds scale with the scene, so a scaled copy casts the same rays, scaled.
 //! Closest-hit rays leave from `eps` off their surface.
+//!
+//! What Embree holds is the scene's faces, not its patches: a planar face of the patch
+//! set's grids ([`crate::mesh::FaceGrid`]) goes in whole, as its own one or two
+//! triangles, and a hit names its patch by where it falls on the face (the grid cell of
+//! its barycentric coordinates). The patch triangles tile such a face exactly, so both
+//! scenes give the same answers up to the `f32` rounding of their vertices (a ray within
+//! that rounding of a patch edge may go to either neighbour, in either scene); a quad off
+//! its plane by more than `1e-3` of `eps`, and every patch of a set without grids (the
+//! hierarchy's elements), go in by their patch triangles. On the Cornell box at 299,681
+//! patches, Embree's closest-hit queries over the faces took 0.42-0.44 of the time they
+//! took over the patch triangles (`docs/PERFORMANCE.md`, section 1).
 
 mod embree;
 
@@ -203,8 +214,8 @@ pub struct Hit {
 }
 
 /// Visibility queries over the faces of a [`PatchSet`]: each planar face of its
-/// [`PatchSet::grids`] traced whole (one or two triangles; see [`Whole`]), every other
-/// face by its patch triangles.
+/// [`PatchSet::grids`] traced whole (one or two triangles; see the module docs), every
+/// other face by its patch triangles.
 pub struct Visibility {
     scene: EmbreeScene,
     /// For each traced triangle: the patch it belongs to, or with [`WHOLE`] set the face
@@ -263,7 +274,7 @@ impl Visibility {
         self.tri_front.len()
     }
 
-    /// Number of faces traced whole ([`Whole`]).
+    /// Number of faces traced whole (see the module docs).
     pub fn whole_faces(&self) -> usize {
         self.wholes.len()
     }
@@ -497,12 +508,8 @@ impl Visibility {
 /// `p0..p3` as `(p0, p1, p2)` and `(p0, p2, p3)`, the way its patches are split). A hit
 /// names its patch by where it falls on the face: from the hit's barycentric coordinates,
 /// the face's grid cell ([`Cut::cell`]). The patches' triangles tile the face exactly (the
-/// cells of a planar bilinear grid have straight sides), so the two scenes answer alike up
-/// to the `f32` rounding of their vertices; a ray within that rounding of a patch edge may
-/// be given to either neighbour in either scene. The acceleration structure then holds the
-/// scene's faces, not its patches: on the Cornell box at 299,681 patches (19 faces)
-/// Embree's closest-hit queries took 0.32-0.37 of the time (`docs/PERFORMANCE.md`,
-/// section 1, *A scene of the input faces*).
+/// cells of a planar bilinear grid have straight sides), which is why this is the same
+/// scene (module docs).
 #[derive(Clone, Copy, Debug)]
 struct Whole {
     /// The face's first patch.
