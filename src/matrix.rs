@@ -812,53 +812,105 @@ impl FormFactors {
 
     /// Row sums, reciprocity and range checks.
     pub fn diagnostics(&self) -> Diagnostics {
+        self.diagnostics_in_blocks(DIAGNOSTIC_BLOCK)
+    }
+
+    /// [`FormFactors::diagnostics`] with blocks of `block` rows. Runs of consecutive rows go
+    /// in parallel. Within a run, rows come in blocks; for a block, one pass over every
+    /// row `j` of the matrix reads its entries `F_ji` whose column `i` lies in the block
+    /// (a cursor per row `j` that only moves forward from block to block), and meets each
+    /// one with the entry `F_ij` of row `i` (a cursor per row of the block, also moving
+    /// forward, since `j` grows): the rows read stream through memory in order, and the
+    /// block's rows stay in the caches. A binary search per entry, or a cursor walk
+    /// entry by entry into row `j`, read several scattered cache lines a stored factor
+    /// (`docs/PERFORMANCE.md`, section 1).
+    fn diagnostics_in_blocks(&self, block: usize) -> Diagnostics {
         use rayon::prelude::*;
         let n = self.len();
-        // Rows in parallel, in blocks of consecutive rows; `reciprocity_beyond_3se` carries
-        // the count of pairs beyond 3 standard errors and `nnz` the count of pairs until
-        // the final division. Within a block, the rows `i` come in increasing order, so the
-        // back entry `F_ji` of row j is found by a cursor that only moves forward along row
-        // j (one binary search per block and row j, then a step or two per lookup, where a
-        // binary search per entry took ~10 scattered reads).
-        let block = n.div_ceil(16 * rayon::current_num_threads()).max(1);
-        let d = (0..n.div_ceil(block))
+        let block = block.max(1);
+        let runs = (4 * rayon::current_num_threads())
+            .min(n.div_ceil(block))
+            .max(1);
+        let per_run = n.div_ceil(runs).max(1);
+        let d = (0..runs)
             .into_par_iter()
-            .map(|b| {
-                let mut cursor = vec![usize::MAX; n];
-                (b * block..((b + 1) * block).min(n))
-                    .map(|i| self.row_diagnostics(i, &mut cursor))
-                    .fold(Diagnostics::empty(), Diagnostics::merge)
-            })
+            .map(|r| self.diagnostics_of(r * per_run..((r + 1) * per_run).min(n), block))
             .reduce(Diagnostics::empty, Diagnostics::merge);
         d.finish(self.f.nnz(), n)
     }
 
-    /// The diagnostics of row `i` alone (see [`FormFactors::diagnostics`] for the two
-    /// counters that are carried as counts here). `cursor[j]` is a position in row j at or
-    /// before the first column `>= i` (`usize::MAX`: not set yet); rows must come in
-    /// increasing order for one cursor array.
-    fn row_diagnostics(&self, i: usize, cursor: &mut [usize]) -> Diagnostics {
-        let (lo, hi) = (self.f.indptr().index(i), self.f.indptr().index(i + 1));
-        let row = (
-            &self.f.indices()[lo..hi],
-            &self.f.data()[lo..hi],
-            &self.se[lo..hi],
-        );
-        row_diagnostics(i, row, &self.area, |_, j| {
-            let (ptr, idx) = (self.f.indptr(), self.f.indices());
-            let (lo, hi) = (ptr.index(j), ptr.index(j + 1));
-            let mut c = cursor[j];
-            if c == usize::MAX {
-                c = lo + idx[lo..hi].partition_point(|&x| (x as usize) < i);
+    /// The diagnostics of the rows `rows`, in blocks of `block` rows (see
+    /// [`FormFactors::diagnostics_in_blocks`]), with the two counters
+    /// [`FormFactors::diagnostics`] divides at the end carried as counts.
+    fn diagnostics_of(&self, rows: std::ops::Range<usize>, block: usize) -> Diagnostics {
+        let (ptr, idx, val, se) = (self.f.indptr(), self.f.indices(), self.f.data(), &self.se);
+        let mut d = Diagnostics::empty();
+        if rows.is_empty() {
+            return d;
+        }
+        let n = self.len();
+        // `cursor[j]`: the first position in row j whose column is at least the block's
+        // first row.
+        let mut cursor: Vec<usize> = (0..n)
+            .map(|j| {
+                let (a, b) = (ptr.index(j), ptr.index(j + 1));
+                a + idx[a..b].partition_point(|&x| (x as usize) < rows.start)
+            })
+            .collect();
+        let mut at: Vec<usize> = Vec::with_capacity(block);
+        let (mut pairs, mut beyond) = (0usize, 0usize);
+        let mut pair = |d: &mut Diagnostics, i: usize, k: usize, back: Option<(f64, f32)>| {
+            let (j, f) = (idx[k] as usize, val[k]);
+            if let Some(b) = check_entry(&self.area, (i, j), (f, se[k]), back, d) {
+                pairs += 1;
+                beyond += usize::from(b);
             }
-            while c < hi && (idx[c] as usize) < i {
-                c += 1;
+        };
+        for b0 in rows.clone().step_by(block) {
+            let b1 = (b0 + block).min(rows.end);
+            at.clear();
+            at.extend((b0..b1).map(|i| ptr.index(i)));
+            let mut recip = Diagnostics::empty();
+            for (j, cj) in cursor.iter_mut().enumerate() {
+                let end = ptr.index(j + 1);
+                let mut c = *cj;
+                while c < end && (idx[c] as usize) < b1 {
+                    // F_ji, the back entry of F_ij in row i of the block. Row i's entries
+                    // before column j have no back entry: it would have come earlier.
+                    let i = idx[c] as usize;
+                    let (k_end, mut k) = (ptr.index(i + 1), at[i - b0]);
+                    while k < k_end && (idx[k] as usize) < j {
+                        pair(&mut recip, i, k, None);
+                        k += 1;
+                    }
+                    if k < k_end && idx[k] as usize == j {
+                        pair(&mut recip, i, k, Some((val[c], se[c])));
+                        k += 1;
+                    }
+                    at[i - b0] = k;
+                    c += 1;
+                }
+                *cj = c;
             }
-            cursor[j] = c;
-            (c < hi && idx[c] as usize == i).then(|| (self.f.data()[c], self.se[c]))
-        })
+            for i in b0..b1 {
+                for k in at[i - b0]..ptr.index(i + 1) {
+                    pair(&mut recip, i, k, None);
+                }
+                let (lo, hi) = (ptr.index(i), ptr.index(i + 1));
+                d = Diagnostics::merge(d, row_head(i, &val[lo..hi], &se[lo..hi]));
+            }
+            d = Diagnostics::merge(d, recip);
+        }
+        d.reciprocity_beyond_3se = beyond as f64;
+        d.nnz = pairs;
+        d
     }
 }
+
+/// Rows per block of [`FormFactors::diagnostics`]: a block's rows, read a few cache lines
+/// each at a time, stay within a core's caches, and every row of the matrix is visited
+/// once per block.
+const DIAGNOSTIC_BLOCK: usize = 4096;
 
 /// The diagnostics of row `i` (its columns, values and standard errors; `area` of every
 /// patch), with the two counters [`FormFactors::diagnostics`] divides at the end carried
@@ -870,24 +922,11 @@ fn row_diagnostics(
     area: &[f64],
     mut back: impl FnMut(usize, usize) -> Option<(f64, f32)>,
 ) -> Diagnostics {
-    // `+ 0.0`: the sum of no terms is -0.0, printed `-0.00000` for an empty row.
-    let s: f64 = vals.iter().sum::<f64>() + 0.0;
-    let mut d = Diagnostics {
-        min_row_sum: s,
-        max_row_sum: s,
-        max_row: i,
-        empty_rows: usize::from(vals.is_empty()),
-        rows_over_one: usize::from(over_one(s, sum_bar(ses), 3.0)),
-        ..Default::default()
-    };
+    let mut d = row_head(i, vals, ses);
     let (mut pairs, mut beyond) = (0usize, 0usize);
     for (k, ((&j, &f), &se_ij)) in cols.iter().zip(vals).zip(ses).enumerate() {
-        let (j, se_ij) = (j as usize, Bar::of(se_ij));
-        if !f.is_finite() || !(0.0..=1.0).contains(&f) {
-            d.out_of_range += 1;
-        }
-        let b = back(k, j);
-        if let Some(b) = reciprocity_of(area, (i, j), (f, se_ij), b, &mut d) {
+        let j = j as usize;
+        if let Some(b) = check_entry(area, (i, j), (f, se_ij), back(k, j), &mut d) {
             pairs += 1;
             beyond += usize::from(b);
         }
@@ -895,6 +934,38 @@ fn row_diagnostics(
     d.reciprocity_beyond_3se = beyond as f64;
     d.nnz = pairs;
     d
+}
+
+/// The diagnostics of row `i` that need no other row: its sum (values `vals`, standard
+/// errors `ses`), whether it is empty, whether it is over 1 beyond 3 bars.
+fn row_head(i: usize, vals: &[f64], ses: &[f32]) -> Diagnostics {
+    // `+ 0.0`: the sum of no terms is -0.0, printed `-0.00000` for an empty row.
+    let s: f64 = vals.iter().sum::<f64>() + 0.0;
+    Diagnostics {
+        min_row_sum: s,
+        max_row_sum: s,
+        max_row: i,
+        empty_rows: usize::from(vals.is_empty()),
+        rows_over_one: usize::from(over_one(s, sum_bar(ses), 3.0)),
+        ..Default::default()
+    }
+}
+
+/// The checks of one stored entry `F_ij = f` (standard error `se_ij`) whose back entry
+/// is `back`: its range, into `d.out_of_range`, and its reciprocity ([`reciprocity_of`],
+/// whose answer it returns).
+#[inline]
+fn check_entry(
+    area: &[f64],
+    (i, j): (usize, usize),
+    (f, se_ij): (f64, f32),
+    back: Option<(f64, f32)>,
+    d: &mut Diagnostics,
+) -> Option<bool> {
+    if !f.is_finite() || !(0.0..=1.0).contains(&f) {
+        d.out_of_range += 1;
+    }
+    reciprocity_of(area, (i, j), (f, Bar::of(se_ij)), back, d)
 }
 
 /// Folds the reciprocity gap `|A_i F_ij - A_j F_ji|` of the stored entry `F_ij = f`
@@ -1477,7 +1548,7 @@ mod tests {
     }
 
     /// The diagnostics with a binary search per back entry, row by row: the reference for
-    /// the cursor walk of `FormFactors::diagnostics` (the same per-pair figures).
+    /// the blocked walk of `FormFactors::diagnostics` (the same per-pair figures).
     fn diagnostics_by_search(ff: &FormFactors) -> Diagnostics {
         let mut d = Diagnostics {
             min_row_sum: f64::INFINITY,
@@ -1536,17 +1607,30 @@ mod tests {
             .num_threads(4)
             .build()
             .unwrap();
-        let got = pool.install(|| ff.diagnostics());
         let want = diagnostics_by_search(&ff);
-        assert!(got.reciprocity > 1e-4 && got.reciprocity_beyond_3se > 0.0);
-        assert_eq!(got.reciprocity, want.reciprocity);
-        assert_eq!(got.reciprocity_significant, want.reciprocity_significant);
-        assert_eq!(got.reciprocity_beyond_3se, want.reciprocity_beyond_3se);
-        assert_eq!(
-            (got.min_row_sum, got.max_row_sum),
-            (want.min_row_sum, want.max_row_sum)
-        );
-        assert_eq!(got.max_row, want.max_row);
+        let whole = ff.diagnostics();
+        // Blocks of one row, of a few, and as many runs as blocks or fewer.
+        for block in [1, 7, 64, DIAGNOSTIC_BLOCK] {
+            let got = pool.install(|| ff.diagnostics_in_blocks(block));
+            assert!(got.reciprocity > 1e-4 && got.reciprocity_beyond_3se > 0.0);
+            assert_eq!(got.reciprocity, want.reciprocity, "block {block}");
+            assert_eq!(got.reciprocity_significant, want.reciprocity_significant);
+            assert_eq!(got.reciprocity_beyond_3se, want.reciprocity_beyond_3se);
+            assert_eq!(
+                (got.min_row_sum, got.max_row_sum),
+                (want.min_row_sum, want.max_row_sum)
+            );
+            assert_eq!(got.max_row, want.max_row);
+            assert_eq!(
+                (got.nnz, got.empty_rows, got.rows_over_one, got.out_of_range),
+                (
+                    whole.nnz,
+                    whole.empty_rows,
+                    whole.rows_over_one,
+                    whole.out_of_range
+                )
+            );
+        }
     }
 
     /// A pseudo-random sparse upper triangle with up to `n` rows.
