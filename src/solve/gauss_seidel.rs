@@ -52,7 +52,10 @@ impl Solver for GaussSeidel {
                 // `all`: F_i . old (for the residual of `old`); `off`: the sweep's sum over
                 // j != i with current values; `fii`: the diagonal.
                 let (mut all, mut off, mut fii) = ([0.0; 3], [0.0; 3], 0.0);
-                for (&j, &f) in ind.iter().zip(val) {
+                for (k, (&j, &f)) in ind.iter().zip(val).enumerate() {
+                    if let Some(&ahead) = ind.get(k + PREFETCH) {
+                        crate::simd::prefetch(&both[ahead as usize]);
+                    }
                     let j = j as usize;
                     let w = &both[j].0;
                     for c in 0..3 {
@@ -78,6 +81,9 @@ impl Solver for GaussSeidel {
         })
     }
 }
+
+/// How many entries ahead of the one read a sweep asks for its patch's record.
+const PREFETCH: usize = 16;
 
 /// A patch's value at the start of a sweep and its current one, aligned to a cache line.
 #[derive(Clone, Copy)]
