@@ -254,6 +254,13 @@ impl Visibility {
     /// planar, traced whole, and over the patch triangles of the others (or of every patch,
     /// when the set has no grids).
     pub fn new(patches: &PatchSet) -> Result<Visibility> {
+        if patches.len() >= WHOLE as usize {
+            return Err(crate::error::Error::Embree(format!(
+                "{} patches are too many to trace (at most {})",
+                patches.len(),
+                WHOLE - 1
+            )));
+        }
         let offsets = Offsets::of(patches);
         let t = Traced::of(patches, offsets);
         let v32: Vec<Vec3> = patches.vertices.iter().map(|v| v.as_vec3()).collect();
@@ -663,7 +670,9 @@ impl Traced {
             } else if let Layout::Back { front } = g.layout {
                 let wf = whole_of[front as usize];
                 if wf != NO_HIT {
-                    // Traced with its front, which lies on it.
+                    // Front and back of a two-sided face lie on each other: the front's
+                    // triangles serve both, a ray meeting their back side having met the
+                    // back face's front.
                     t.wholes[wf as usize].back = g.first;
                 }
             }
@@ -677,6 +686,9 @@ impl Traced {
                 None => false,
             };
             if !on_whole {
+                // Both sides of a two-sided face are traced, lying on each other: a ray
+                // meets both at one distance and Embree reports either; from the back of
+                // one it has met the front of the other.
                 let twin = patches.twin_of(p as usize).map_or(NO_HIT, |t| t as u32);
                 add(&mut t, *tri, p, normal[p as usize], twin);
             }
