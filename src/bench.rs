@@ -574,7 +574,7 @@ pub fn stages(
     let bytes_per_factor = ff.entry_bytes() as f64 / nnz.max(1) as f64;
     let row_pointer_bytes = ff.row_pointer_bytes();
     let solved = st.run("solve", || {
-        pipeline::solve_radiosity(&patches, &ff, Method::GaussSeidel, &Options::default())
+        pipeline::solve_radiosity(&patches, &ff, Method::default(), &Options::default())
     });
     // A solve that fails (e.g. area-to-area rows summing far above 1 on the cube's shared
     // edges) is reported, and the output stage then writes the emission only.

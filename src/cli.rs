@@ -553,7 +553,7 @@ struct BakeArgs {
     #[command(flatten)]
     hier: HierarchyArgs,
     /// Radiosity solver.
-    #[arg(long, value_enum, default_value_t = Method::GaussSeidel)]
+    #[arg(long, value_enum, default_value_t = Method::default())]
     solver: Method,
     /// Relative residual at which the solver stops; every patch must also be converged to
     /// it, relative to its own radiosity (see --floor).

@@ -169,7 +169,7 @@ impl Default for BakeConfig {
                 tol: SemiAnalytic::DEFAULT_TOL,
             },
             seed: 1,
-            method: Method::GaussSeidel,
+            method: Method::default(),
             solve: Options::default(),
             preview: (512, 512),
             exposure: Exposure::Auto,
@@ -890,6 +890,7 @@ fn bake_hierarchical(
         seconds: r.passes.iter().map(|p| p.solve_seconds).sum(),
         converged: last.solve.converged,
         notes: r.notes.clone(),
+        relaxation: None,
     };
     Ok(BakeSummary {
         scene: scene.name.clone(),
@@ -1166,8 +1167,9 @@ pub fn format_summary(s: &BakeSummary) -> String {
     }
     let _ = writeln!(
         o,
-        "solve: {} in {} iterations, relative residual {:.2e}, worst patch {:.2e}{}",
+        "solve: {}{} in {} iterations, relative residual {:.2e}, worst patch {:.2e}{}",
         s.solve.solver,
+        relaxation_note(s.solve.relaxation),
         s.solve.iterations,
         s.solve.residual,
         s.solve.patch_residual,
@@ -1217,6 +1219,16 @@ pub fn wrap(text: &str, width: usize) -> String {
         out.push('\n');
     }
     out
+}
+
+/// ` (omega 1.1)`, or ` (omega 1.1/1.1/1.08)` when the channels differ, for an
+/// over-relaxed solve; empty otherwise.
+fn relaxation_note(omega: Option<[f64; 3]>) -> String {
+    match omega {
+        Some([r, g, b]) if r == g && g == b => format!(" (omega {r:.4})"),
+        Some([r, g, b]) => format!(" (omega {r:.4}/{g:.4}/{b:.4})"),
+        None => String::new(),
+    }
 }
 
 /// The lines every bake summary ends with: notes, ranks, times, warnings, files.

@@ -183,7 +183,7 @@ pub fn probe(v: &VertexRadiosity, p: DVec3, n: DVec3, tol: f64) -> Option<[f64; 
 /// How a bake of the study was made.
 #[derive(Clone, Debug, PartialEq)]
 pub enum BakeKind {
-    /// Uniform patches, the default semi-analytic factors, Gauss–Seidel.
+    /// Uniform patches, the default semi-analytic factors, the default solver.
     Flat(usize),
     /// Hierarchical at this link tolerance.
     Hierarchical(f64),
@@ -320,7 +320,7 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
         let est = pipeline::BakeConfig::default().estimator;
         let (ff, _, _) = pipeline::form_factors(&patches, &est, 1, &Quiet)?;
         let (b, _) =
-            pipeline::solve_radiosity(&patches, &ff, Method::GaussSeidel, &Options::default())?;
+            pipeline::solve_radiosity(&patches, &ff, Method::default(), &Options::default())?;
         let verts = interpolate(&patches, &b, 30.0);
         let (cpu, wall) = (cpu_seconds() - c0, t0.elapsed().as_secs_f64());
         let (face_max, points, values) = score(

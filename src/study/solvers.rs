@@ -124,14 +124,6 @@ fn thin<T: Copy>(v: Vec<T>, max: usize) -> Vec<T> {
     out
 }
 
-const METHODS: [Method; 5] = [
-    Method::Jacobi,
-    Method::GaussSeidel,
-    Method::Progressive,
-    Method::Cg,
-    Method::Direct,
-];
-
 fn run_case(
     case: &str,
     patches: &PatchSet,
@@ -146,7 +138,7 @@ fn run_case(
         keep_partial: true,
         floor: None,
     };
-    for method in METHODS {
+    for method in Method::ALL {
         let per_iteration = match method {
             Method::Progressive => 1.0 / n,
             Method::Cg => 2.0,
