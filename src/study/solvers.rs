@@ -298,15 +298,15 @@ mod tests {
             std::env::temp_dir().join(format!("radiosity-solver-study-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         let report = run(&Settings::quick(dir.clone())).unwrap();
-        // 2 x 2 cube cases + Cornell, 5 solvers each.
-        assert_eq!(report.runs.len(), 25);
+        // 2 x 2 cube cases + Cornell, every solver on each.
+        assert_eq!(report.runs.len(), 5 * Method::ALL.len());
         for r in &report.runs {
             assert_eq!(r.status, "ok", "{} {}", r.case, r.solver);
             assert!(r.residual.is_finite() && r.residual <= 1e-8);
             assert!(r.curve.iter().all(|p| p.0.is_finite() && p.1.is_finite()));
         }
         let summary = std::fs::read_to_string(dir.join("solvers-summary.csv")).unwrap();
-        assert_eq!(summary.lines().count(), 26);
+        assert_eq!(summary.lines().count(), 5 * Method::ALL.len() + 1);
         assert!(dir.join("residual-vs-iterations-cornell.svg").exists());
         assert!(report.runs.iter().all(|r| r.curve.len() <= MAX_POINTS));
         assert_eq!(thin((0..10).collect(), 4), vec![0, 3, 6, 9]);
