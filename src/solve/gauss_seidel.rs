@@ -42,22 +42,40 @@
 //! (`l_i`, `u_i`: the row's sums of `|J|` before and after the diagonal, `t <= 1`), so by
 //! induction each sweep contracts the error's infinity norm by `t = |1 - omega| + omega g`,
 //! below 1 for every `0 < omega < 2 / (1 + g)`. That bound is the classical one for
-//! H-matrices (Varga, §3.6), proved here in the norm the solvers measure. It says when the
-//! iteration converges, not how fast: the factor that pays is found by measurement. On the
-//! radiosity systems of this project's scenes (the Cornell box, the closed cube, a room of
-//! spheres, a closed furnace; hemisphere factors, 6,000 to 30,000 patches) Gauss-Seidel
-//! needed 12-20 sweeps to the default tolerance and `omega = 1.1` 8-15, a quarter to a third
-//! fewer, while 1.05, 1.15, 1.2, 1.3 and 1.4 did no better (docs/PERFORMANCE.md). So
-//! [`Sor`] takes, channel by channel from that channel's gain `g_c`,
+//! H-matrices (Varga, §3.6), proved here in the norm the solvers measure. A wider range
+//! holds when `F` is reciprocal (`A_i F_ij = A_j F_ji`, the semi-analytic and area
+//! estimators): a sweep's update of row `i` does not change when the row is scaled, and
+//! scaling row `i` by `A_i / rho_i` makes the matrix symmetric, and positive definite when
+//! `g < 1` (diagonally dominant), so every `0 < omega < 2` converges (Ostrowski and Reich;
+//! Varga, §3.4). Black patches (`rho_i = 0`) hold `B_i = E_i` from the first sweep on.
 //!
-//! ```text
-//! omega_c = min(1.1, 1 + 0.9 (2 / (1 + g_c) - 1))
-//! ```
+//! ## The factor
+//! Which `omega` is fastest is Young's answer for consistently ordered matrices (Young
+//! 1954; Varga, §4.3): `omega* = 2 / (1 + sqrt(1 - r²))`, with `r` the spectral radius of
+//! `J`; at factor `w` the error falls per sweep by the `lambda` with
+//! `(lambda + w - 1)² = lambda w² r²` (at `w = 1`, `lambda = r²`). Radiosity matrices are not
+//! consistently ordered, but the formula lands near the measured best on them (a closed
+//! furnace of 400 patches with one emitter in 37, `rho` 0.5 to 0.99: best 1.1, 1.3, 1.5 and
+//! 1.8 by trial, the formula 1.08, 1.26, 1.40 and 1.76). `r` is not known in advance, so
+//! [`Sor`] finds it from the sweeps themselves, channel by channel:
 //!
-//! inside the proven range by a tenth of its width above 1, and plain Gauss-Seidel
-//! (`omega_c = 1`) when `g_c >= 1`, where the bound proves nothing. A system with bright
-//! walls (`g` near 1) gets `omega` near 1: there the conjugate-gradient solver
-//! ([`Cg`](super::Cg)) is the one that pays (`radiosity study-solvers`).
+//! 1. It sweeps at the proven factor `omega_c = min(1.1, 1 + 0.9 (2 / (1 + g_c) - 1))`
+//!    ([`relaxation`]; Gauss-Seidel when `g_c >= 1`) and watches the channel's residual
+//!    fall, until two successive ratios agree within 5% (from the fourth sweep on; at most
+//!    12 sweeps).
+//! 2. From that rate `lambda` it solves the relation above for `r²` and takes `omega*`
+//!    ([`young`], at most 1.95) when it is larger than the proven factor.
+//! 3. Over-relaxed sweeps first raise the residual, then lower it faster (10.5 times up at
+//!    `omega` 1.91 before it fell). A residual grown past `4 / (2 - omega)` times where the
+//!    factor changed, or not back below it within `max(30, 20 / (2 - omega))` sweeps, sends
+//!    the channel back to the proven factor, which converges from any start.
+//!
+//! Measured (hemisphere factors, default tolerance 1e-6; sweeps of Gauss-Seidel against
+//! these): the Cornell box at 30,000 patches 16 against 10, `room-spheres-8` at 20,000 20
+//! against 14, the closed cube and the closed Cornell furnace at 6,000 12 against 8, and
+//! the closed Cornell box with every surface white and one wall emitting (6,000 patches)
+//! 27 against 16 at `rho` 0.8, 43 against 20 at 0.9 and 72 against 28 at 0.97. The solver
+//! study's closed cubes (`radiosity study-solvers`, docs/SOLVERS.md) show the rest.
 
 use super::{
     max3, sweep_loop, sweeps, Floor, Options, Prologue, Rows, SolveReport, Solver, System,
@@ -67,7 +85,7 @@ use crate::error::{Error, Result};
 pub(crate) const NAME: &str = "gauss-seidel";
 pub(crate) const SOR_NAME: &str = "sor";
 
-/// The largest factor [`Sor`] chooses by itself (module docs).
+/// The largest proven factor [`Sor`] starts from ([`relaxation`]).
 pub const MAX_RELAXATION: f64 = 1.1;
 
 /// The Gauss-Seidel iteration; see the [module docs](self).
@@ -91,8 +109,9 @@ impl Solver for GaussSeidel {
 /// (module docs, *Over-relaxation*).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Sor {
-    /// The factor, the same for every channel; `None` chooses one per channel from the
-    /// system's gain bound ([`relaxation`]).
+    /// The factor, the same for every channel and every sweep; `None` chooses one per
+    /// channel, from the system's gain bound and then from the sweeps' rate (module docs,
+    /// *The factor*).
     pub omega: Option<f64>,
 }
 
@@ -126,17 +145,147 @@ impl Solver for Sor {
             }
         }
         let pro = Prologue::new(sys, opts)?;
-        let omega = match self.omega {
-            Some(w) => [w; 3],
-            None => pro.gain.gain.map(relaxation),
-        };
+        let safe = pro.gain.gain.map(relaxation);
+        let mut adapt: [Adaptive; 3] = std::array::from_fn(|c| match self.omega {
+            Some(w) => Adaptive::fixed(w),
+            None => Adaptive::new(safe[c]),
+        });
         let mut both = Vec::new();
         let (b, mut report) = sweeps(SOR_NAME, sys, opts, pro, |rows, floor, old, b| {
-            sweep(sys, rows, floor, omega, &mut both, old, b)
+            let omega = adapt.each_ref().map(|a| a.omega);
+            let (res, per_patch) = sweep(sys, rows, floor, omega, &mut both, old, b);
+            for (a, &r) in adapt.iter_mut().zip(&res) {
+                a.observe(r);
+            }
+            (res, per_patch)
         })?;
-        report.relaxation = Some(omega);
+        report.relaxation = Some(adapt.map(|a| a.omega));
         Ok((b, report))
     }
+}
+
+/// The factor of one channel while [`Sor`] sweeps (module docs, *The factor*).
+#[derive(Clone, Copy, Debug)]
+struct Adaptive {
+    /// The factor of the next sweep.
+    omega: f64,
+    /// The proven factor, to fall back on.
+    safe: f64,
+    phase: Phase,
+}
+
+#[derive(Clone, Copy, Debug)]
+enum Phase {
+    /// Sweeps at the proven factor, watching the residual's ratio from sweep to sweep: the
+    /// last residual and ratio, and the sweeps seen.
+    Measuring { r: f64, mu: f64, sweeps: usize },
+    /// Young's factor, since the sweep whose start had residual `r`, `sweeps` ago.
+    Young { r: f64, sweeps: usize },
+    /// The factor stays as it is.
+    Fixed,
+}
+
+/// Sweeps at most at the proven factor before settling for it.
+const MEASURE_SWEEPS: usize = 12;
+/// Two successive ratios this close (relative) are taken as the asymptotic rate.
+const RATE_SETTLED: f64 = 0.05;
+/// Sweeps Young's factor gets at least to bring the residual below where it started.
+const YOUNG_TRIAL: usize = 30;
+/// The largest factor taken.
+const MAX_OMEGA: f64 = 1.95;
+
+impl Adaptive {
+    fn new(safe: f64) -> Adaptive {
+        Adaptive {
+            omega: safe,
+            safe,
+            phase: Phase::Measuring {
+                r: f64::NAN,
+                mu: f64::NAN,
+                sweeps: 0,
+            },
+        }
+    }
+
+    fn fixed(omega: f64) -> Adaptive {
+        Adaptive {
+            omega,
+            safe: omega,
+            phase: Phase::Fixed,
+        }
+    }
+
+    /// Takes the residual of the iterate the last sweep started from, and sets the factor
+    /// of the next one.
+    fn observe(&mut self, res: f64) {
+        match self.phase {
+            Phase::Fixed => {}
+            Phase::Measuring { r, mu, sweeps } => {
+                let ratio = res / r;
+                let settled = sweeps >= 3
+                    && ratio > 0.0
+                    && ratio < 1.0
+                    && (ratio - mu).abs() <= RATE_SETTLED * ratio;
+                if settled {
+                    // The rate of these sweeps at factor w gives the Jacobi radius:
+                    // (rate + w - 1)² = rate w² radius² (Young 1954, for a consistently
+                    // ordered matrix; at w = 1, radius² = rate).
+                    let w = self.omega;
+                    let radius2 = (ratio + w - 1.0).powi(2) / (ratio * w * w);
+                    let better = young(radius2);
+                    if better > w {
+                        self.omega = better;
+                        self.phase = Phase::Young { r: res, sweeps: 0 };
+                    } else {
+                        self.phase = Phase::Fixed;
+                    }
+                } else if sweeps + 1 >= MEASURE_SWEEPS || !res.is_finite() {
+                    self.settle();
+                } else {
+                    self.phase = Phase::Measuring {
+                        r: res,
+                        mu: ratio,
+                        sweeps: sweeps + 1,
+                    };
+                }
+            }
+            Phase::Young { r, sweeps } => {
+                // Over-relaxed sweeps first raise the residual before it falls faster (by
+                // about 1 / (2 - omega) at most, measured; 10.5 times at omega 1.91), and
+                // take longer to come back the nearer omega is to 2 (about 68 sweeps at
+                // 1.85 on the study's ceiling-lit cube at rho 0.999): a residual grown past
+                // four times that, or not back below where it started after 20 / (2 -
+                // omega) sweeps (30 at least), sends the channel back to the factor that
+                // provably converges.
+                let slack = 1.0 / (2.0 - self.omega);
+                let trial = YOUNG_TRIAL.max((20.0 * slack).ceil() as usize);
+                let grown = res.is_nan() || res > 4.0 * slack * r;
+                if grown || (sweeps >= trial && res >= r) {
+                    self.settle();
+                } else {
+                    self.phase = Phase::Young {
+                        r,
+                        sweeps: sweeps + 1,
+                    };
+                }
+            }
+        }
+    }
+
+    fn settle(&mut self) {
+        self.omega = self.safe;
+        self.phase = Phase::Fixed;
+    }
+}
+
+/// Young's optimal factor `2 / (1 + sqrt(1 - mu))` for a Gauss-Seidel rate `mu` (the
+/// square of the Jacobi matrix's spectral radius for a consistently ordered matrix; Young
+/// 1954), at least 1 and at most [`MAX_OMEGA`].
+pub fn young(mu: f64) -> f64 {
+    if !(0.0..1.0).contains(&mu) {
+        return 1.0;
+    }
+    (2.0 / (1.0 + (1.0 - mu).sqrt())).clamp(1.0, MAX_OMEGA)
 }
 
 /// One sweep with factors `omega` (1: Gauss-Seidel): from `old`, the iterate the sweep
@@ -372,6 +521,106 @@ mod tests {
                 .solve(&owned.sys(), &Options::default())
                 .unwrap_err();
             assert!(err.to_string().contains("(0, 2)"), "{w}: {err}");
+        }
+    }
+
+    #[test]
+    fn sor_finds_the_factor_of_bright_furnaces() {
+        // Closed furnaces lit by one patch in 37: Gauss-Seidel slows like 1 / (1 - rho);
+        // the factor found from the sweeps' rate cuts that by 2, 5 and 15 times at least.
+        let opts = Options {
+            tolerance: 1e-8,
+            max_iterations: 100_000,
+            ..Options::default()
+        };
+        for (rho, gain) in [(0.9, 2.0), (0.99, 5.0), (0.999, 15.0)] {
+            let mut owned = furnace(400, [rho; 3], [1.0; 3]);
+            for (i, e) in owned.emit.iter_mut().enumerate() {
+                *e = if i % 37 == 0 { [1.0; 3] } else { [0.0; 3] };
+            }
+            let sys = owned.sys();
+            let (_, gs) = GaussSeidel.solve(&sys, &opts).unwrap();
+            let (b, sor) = Sor::AUTO.solve(&sys, &opts).unwrap();
+            eprintln!(
+                "rho {rho}: gauss-seidel {} sweeps, sor {} at {:?}",
+                gs.iterations, sor.iterations, sor.relaxation
+            );
+            assert!(
+                (sor.iterations as f64) * gain <= gs.iterations as f64,
+                "rho {rho}: sor {} sweeps, gauss-seidel {}",
+                sor.iterations,
+                gs.iterations
+            );
+            let exact = Direct.solve(&sys, &Options::default()).unwrap().0;
+            for (p, q) in b.iter().zip(&exact) {
+                for c in 0..3 {
+                    assert!((p[c] - q[c]).abs() <= 1e-6 * q[c].abs().max(1e-3));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_factor_that_does_not_pay_goes_back_to_the_proven_one() {
+        use super::{Adaptive, Phase};
+        // A steady rate of 0.9 from the fourth sweep: Young's factor for it.
+        let mut a = Adaptive::new(1.05);
+        let mut r = 1.0;
+        for _ in 0..6 {
+            a.observe(r);
+            r *= 0.9;
+        }
+        assert!(matches!(a.phase, Phase::Young { .. }), "{a:?}");
+        let w = a.omega;
+        let lambda = 0.9f64;
+        let radius2 = (lambda + 1.05 - 1.0).powi(2) / (lambda * 1.05 * 1.05);
+        assert!((w - super::young(radius2)).abs() < 1e-12 && w > 1.05);
+        // Then the residual grows past 4 / (2 - w) times where the factor changed.
+        let Phase::Young { r: start, .. } = a.phase else {
+            unreachable!()
+        };
+        assert_eq!(start, 0.9f64.powi(3));
+        a.observe(start * 3.9 / (2.0 - w));
+        assert!(matches!(a.phase, Phase::Young { .. }), "{a:?}");
+        a.observe(start * 4.1 / (2.0 - w));
+        assert!(matches!(a.phase, Phase::Fixed));
+        assert_eq!(a.omega, 1.05);
+        // Or it never gets back below where it started.
+        let mut a = Adaptive::new(1.0);
+        for k in 0..6 {
+            a.observe(0.5f64.powi(k));
+        }
+        let w = a.omega;
+        assert!(w > 1.0);
+        // Above the residual where the factor changed (0.125), within the growth allowed,
+        // for the 30 sweeps of the trial (two of them already seen).
+        for _ in 0..28 {
+            a.observe(0.2);
+        }
+        assert!(matches!(a.phase, Phase::Young { .. }), "{a:?}");
+        a.observe(0.2);
+        assert!(matches!(a.phase, Phase::Fixed), "{a:?}");
+        assert_eq!(a.omega, 1.0);
+        // A rate that never settles: the proven factor after 12 sweeps.
+        let mut a = Adaptive::new(1.08);
+        for k in 0..12 {
+            a.observe(if k % 2 == 0 { 1.0 } else { 0.3 });
+        }
+        assert!(matches!(a.phase, Phase::Fixed));
+        assert_eq!(a.omega, 1.08);
+        // A fixed factor stays.
+        let mut a = Adaptive::fixed(1.3);
+        a.observe(1e9);
+        assert_eq!(a.omega, 1.3);
+    }
+
+    #[test]
+    fn young_factor() {
+        assert_eq!(super::young(0.0), 1.0);
+        assert!((super::young(0.75) - 4.0 / 3.0).abs() < 1e-15);
+        assert_eq!(super::young(0.99999999), super::MAX_OMEGA);
+        for mu in [1.0, 2.0, -0.1, f64::NAN, f64::INFINITY] {
+            assert_eq!(super::young(mu), 1.0, "{mu}");
         }
     }
 }
