@@ -280,7 +280,7 @@ impl Adaptive {
 
 /// Young's optimal factor `2 / (1 + sqrt(1 - mu))` for a Gauss-Seidel rate `mu` (the
 /// square of the Jacobi matrix's spectral radius for a consistently ordered matrix; Young
-/// 1954), at least 1 and at most [`MAX_OMEGA`].
+/// 1954), at least 1 and at most 1.95.
 pub fn young(mu: f64) -> f64 {
     if !(0.0..1.0).contains(&mu) {
         return 1.0;
