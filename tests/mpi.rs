@@ -103,8 +103,8 @@ fn radiosity_of(dir: &Path) -> Vec<[f32; 3]> {
 
 /// The distributed bake: with `--solver jacobi` the matrix stays distributed and the
 /// radiosity is one process's Jacobi radiosity bit for bit (every file); with the default
-/// Gauss-Seidel the matrix is gathered on rank 0 and every file is one process's; and the
-/// distributed Jacobi agrees with one process's Gauss-Seidel to the solver tolerance.
+/// solver (SOR) the matrix is gathered on rank 0 and every file is one process's; and the
+/// distributed Jacobi agrees with one process's SOR to the solver tolerance.
 #[test]
 fn distributed_bake_is_the_single_process_bake() {
     let dir = temp_dir("bake");
