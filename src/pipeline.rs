@@ -1705,7 +1705,7 @@ pub fn format_thermal_summary(s: &ThermalSummary) -> String {
     }
     let _ = writeln!(
         o,
-        "solve: net-radiation Gauss-Seidel, {} sweeps, relative residual {:.1e}",
+        "solve: net-radiation SOR, {} sweeps, relative residual {:.1e}",
         s.solve.0, s.solve.1
     );
     let _ = writeln!(

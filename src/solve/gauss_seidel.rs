@@ -164,9 +164,10 @@ impl Solver for Sor {
     }
 }
 
-/// The factor of one channel while [`Sor`] sweeps (module docs, *The factor*).
+/// The factor of one channel while [`Sor`] sweeps (module docs, *The factor*); also the
+/// thermal solve's.
 #[derive(Clone, Copy, Debug)]
-struct Adaptive {
+pub(crate) struct Adaptive {
     /// The factor of the next sweep.
     omega: f64,
     /// The proven factor, to fall back on.
@@ -195,7 +196,8 @@ const YOUNG_TRIAL: usize = 30;
 const MAX_OMEGA: f64 = 1.95;
 
 impl Adaptive {
-    fn new(safe: f64) -> Adaptive {
+    /// Starts at the proven factor `safe`, then adapts.
+    pub(crate) fn new(safe: f64) -> Adaptive {
         Adaptive {
             omega: safe,
             safe,
@@ -215,9 +217,14 @@ impl Adaptive {
         }
     }
 
-    /// Takes the residual of the iterate the last sweep started from, and sets the factor
-    /// of the next one.
-    fn observe(&mut self, res: f64) {
+    /// The factor of the next sweep.
+    pub(crate) fn omega(&self) -> f64 {
+        self.omega
+    }
+
+    /// Takes the residual of the iterate the last sweep started from (or of the one it
+    /// made: successive residuals either way), and sets the factor of the next one.
+    pub(crate) fn observe(&mut self, res: f64) {
         match self.phase {
             Phase::Fixed => {}
             Phase::Measuring { r, mu, sweeps } => {

@@ -29,12 +29,13 @@
 //! `rho = r` and `E = b`. A flux patch reflects all it receives (`r = 1`), which the
 //! visible-light solvers refuse on purpose ([`crate::solve::System`] requires `rho < 1`: in a
 //! closed scene lit only by such patches the system is singular). So this module solves it
-//! with its own Gauss–Seidel iteration, after checking that it is not singular: every patch
+//! with its own over-relaxed Gauss–Seidel iteration (the visible-light solver's factor,
+//! [`crate::solve::Sor`]), after checking that it is not singular: every patch
 //! must reach, through the non-zero entries of `F`, an absorbing patch (a given temperature)
 //! or a leak to the environment ([`Error::Singular`] otherwise, naming a patch). `M` is then
 //! a non-singular M-matrix (`diag(r) F >= 0` with spectral radius below 1), for which
 //! Gauss–Seidel converges, for `M` and for its transpose alike (Varga, *Matrix Iterative
-//! Analysis*, thm. 3.15). Rows with `r_i sum_j F_ij >= 1` (Monte Carlo noise on flux patches
+//! Analysis*, thm. 3.15), and which a factor that does not pay falls back to. Rows with `r_i sum_j F_ij >= 1` (Monte Carlo noise on flux patches
 //! of a closed scene) are first scaled to sum to 1, as the bake does
 //! ([`crate::matrix::repair_row_sums`]), with a note.
 //!
@@ -87,6 +88,7 @@ use crate::error::{Error, Result};
 use crate::matrix::{reciprocal_pairs, Bar, Csr};
 use crate::sampling::Pcg32;
 use crate::scene::Boundary;
+use crate::solve::gauss_seidel::{relaxation, Adaptive};
 
 /// Stefan–Boltzmann constant, W m^-2 K^-4 (CODATA 2018; exact since the 2019 SI).
 pub const SIGMA: f64 = 5.670374419e-8;
@@ -121,7 +123,7 @@ pub struct Settings {
     /// Stop when every row's residual is at most this times the largest `|J - E_a|` (and
     /// `|b|`).
     pub tolerance: f64,
-    /// Cap on Gauss–Seidel sweeps per solve.
+    /// Cap on sweeps per solve.
     pub max_iterations: usize,
     /// Random tangent solves for the per-patch error bars (0: no per-patch bars).
     pub replicates: usize,
@@ -164,7 +166,7 @@ pub struct Solution {
     pub to_environment: f64,
     /// Its standard error (tangent replicates).
     pub se_to_environment: f64,
-    /// Gauss–Seidel sweeps of the main solve.
+    /// Sweeps of the main solve (over-relaxed Gauss–Seidel).
     pub iterations: usize,
     /// Largest row residual of the main solve relative to its scale.
     pub residual: f64,
@@ -307,9 +309,13 @@ fn mul(f: &Csr, x: &[f64]) -> Vec<f64> {
         .collect()
 }
 
-/// Gauss–Seidel for `x - diag(r) A x = b` (`A >= 0` by rows, `diag(r) A` of spectral
-/// radius below 1), from `x`; stops when every row's residual is at most `tol` times the
-/// largest of `|x|` and `|b|`. Returns the sweeps and the final relative residual.
+/// Successive over-relaxation for `x - diag(r) A x = b` (`A >= 0` by rows, `diag(r) A` of
+/// spectral radius below 1), from `x`, with the visible-light solver's factor
+/// ([`crate::solve::Sor`]: the proven one from `max_i r_i sum_j A_ij`, which is Gauss–Seidel
+/// when that reaches 1 as with flux patches, then Young's for the rate the sweeps show,
+/// falling back on the first if it does not pay); stops when every row's residual is at
+/// most `tol` times the largest of `|x|` and `|b|`. Returns the sweeps and the final
+/// relative residual.
 fn gauss_seidel(
     a: &Csr,
     r: &[f64],
@@ -332,12 +338,19 @@ fn gauss_seidel(
             worst / scale
         }
     };
+    let gain = (0..n)
+        .map(|i| {
+            let row = a.outer_view(i).expect("row in range");
+            r[i] * row.iter().map(|(_, v)| v.abs()).sum::<f64>()
+        })
+        .fold(0.0, f64::max);
+    let mut factor = Adaptive::new(relaxation(gain));
     let mut res = residual(x);
     let first = res.max(f64::MIN_POSITIVE);
     for k in 0..=max_iterations {
         if !res.is_finite() || res > 1e12 * first.max(1.0) {
             return Err(Error::Singular {
-                solver: format!("thermal gauss-seidel ({what})"),
+                solver: format!("thermal sor ({what})"),
                 msg: format!(
                     "the iteration diverges (relative residual {res:.3e} after {k} sweeps): \
                      rows of F sum so far above 1 that diag(1 - eps) F has spectral radius 1 \
@@ -361,12 +374,14 @@ fn gauss_seidel(
                     off += v * x[j];
                 }
             }
-            x[i] = (b[i] + r[i] * off) / (1.0 - r[i] * aii);
+            let gs = (b[i] + r[i] * off) / (1.0 - r[i] * aii);
+            x[i] += factor.omega() * (gs - x[i]);
         }
         res = residual(x);
+        factor.observe(res);
     }
     Err(Error::NotConverged {
-        solver: format!("thermal gauss-seidel ({what})"),
+        solver: format!("thermal sor ({what})"),
         iterations: max_iterations,
         residual: res,
         tolerance: tol,
