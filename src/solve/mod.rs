@@ -13,8 +13,8 @@
 //! - [`GaussSeidel`] (`gauss_seidel.rs`): the same sweep in place, row by row, solving each
 //!   row for its own `B_i` so a non-zero diagonal `F_ii` (concave patches) is handled.
 //! - [`Sor`] (`gauss_seidel.rs`): successive over-relaxation, the Gauss-Seidel sweep moving
-//!   each patch `omega` times as far, with `omega` chosen from the system inside the range
-//!   where it provably converges; the default.
+//!   each patch `omega` times as far, starting from a factor proven to converge and then
+//!   taking Young's factor for the rate the sweeps show; the default.
 //! - [`Progressive`] (`progressive.rs`): progressive refinement by shooting, Cohen, Chen,
 //!   Wallace and Greenberg 1988, "A progressive refinement approach to fast radiosity image
 //!   generation" (SIGGRAPH '88), with its ambient term for display ([`ambient`],

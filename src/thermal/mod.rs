@@ -364,6 +364,7 @@ fn gauss_seidel(
         if k == max_iterations {
             break;
         }
+        let omega = factor.omega();
         for i in 0..n {
             let row = a.outer_view(i).expect("row in range");
             let (mut off, mut aii) = (0.0, 0.0);
@@ -375,7 +376,7 @@ fn gauss_seidel(
                 }
             }
             let gs = (b[i] + r[i] * off) / (1.0 - r[i] * aii);
-            x[i] += factor.omega() * (gs - x[i]);
+            x[i] += omega * (gs - x[i]);
         }
         res = residual(x);
         factor.observe(res);
