@@ -385,6 +385,11 @@ struct HierarchyArgs {
     /// the link tolerance alone decides; 1 to 3: fewer savings, closer to unclustered).
     #[arg(long, default_value_t = f64::INFINITY)]
     cluster_accuracy: f64,
+    /// Hierarchical with clusters: relative tolerance of a cluster link's transfer to each
+    /// leaf (inf: sampled, its error within the link's bound; e.g. 1e-9: integrated over the
+    /// source's faces, for closed scenes that conserve light to that precision).
+    #[arg(long, default_value_t = f64::INFINITY)]
+    cluster_quadrature: f64,
     /// Hierarchical with clusters: split a receiving face larger than its source cluster
     /// into elements (cluster links below the faces; faster and leaner on large faces, and
     /// sharper shadows on them: docs/HIERARCHY.md, Clustering).
@@ -925,6 +930,7 @@ fn bake(args: &BakeArgs, method: MethodArg, auto: bool, cluster: &dyn Cluster) -
                 seed: args.est.seed,
                 clusters: args.hier.clusters.into(),
                 cluster_accuracy: args.hier.cluster_accuracy,
+                cluster_quadrature: args.hier.cluster_quadrature,
                 split_receivers: args.hier.split_receivers == Switch::On,
                 descend: args.hier.descend,
                 descend_low: args.hier.descend_low,

@@ -35,7 +35,9 @@
 //! exact factors of [`POINTS`] stratified area-sampled points of the source's roots to
 //! the leaf's polygon. (The point source alone errs with one sign near the source: it
 //! overestimates, as `1/d²` does `1/(d² + a²)` for a facing disc of radius `a`, and the
-//! errors of a receiver's many links add up.) Where the leaf's view may differ from the
+//! errors of a receiver's many links add up.) Where the settings ask for the transfer to a
+//! tolerance ([`Expansion::quadrature`]), a piece whose sampled factor is less accurate is
+//! integrated over its roots instead ([`exact_piece`]). Where the leaf's view may differ from the
 //! link's `v` by more than its tolerance allows, summed over the links on its chain, it
 //! checks its own view of some of those points ([`Sight`], [`Expansion::entries`]). The
 //! source radiosity is the visible-area
@@ -81,7 +83,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::element::{Elements, NONE};
-use crate::formfactor::exact::{point_factor, Receiver};
+use crate::formfactor::exact::{self, point_factor, Receiver};
 use crate::formfactor::far::{self, Small};
 use crate::sampling::{fraction_se, Pcg32};
 use crate::visibility::{SegmentRay, Visibility};
@@ -1346,6 +1348,47 @@ fn cone(piece: &Piece, e: &Elements, l: u32, small: &Small) -> (f64, f64) {
     }
 }
 
+/// `A_l F_lS` of element `l` from the roots of node `n`, integrated (`emitter` is `l`'s
+/// polygon, [`exact::Emitter`]), with the bound on its error and the point factors spent
+/// ([`exact::Integral`]): `Σ_j e_j ∫_l F(x → P_j)
+/// dA_x` over the roots `j` of `n`, with `F(x → P_j)` Lambert's point-to-polygon factor
+/// and `e_j` the exposed share of root `j` (its visible area over its area: the sampled
+/// points are weighted so, [`sample_points`]). By reciprocity `∫_l F(x → P_j) dA_x = A_j
+/// F_jl`, the integral [`piece_factor`] samples. Each root's integral is held to `tol`
+/// of its value, and not below `floor` (area units): the element links' quadrature
+/// ([`super::link`], [`exact::integrate`]).
+#[allow(clippy::too_many_arguments)]
+pub fn exact_piece(
+    t: &Tree,
+    e: &Elements,
+    visible: &[f64],
+    n: u32,
+    l: u32,
+    emitter: &mut exact::Emitter,
+    tol: f64,
+    floor: f64,
+) -> exact::Integral {
+    let n_l = e.normal[l as usize];
+    let mut out = exact::Integral::default();
+    for &j in t.roots_of(n) {
+        let ji = j as usize;
+        let exposed = visible[ji] / e.area[ji].max(1e-300);
+        if exposed <= 0.0 {
+            continue;
+        }
+        let receiver = Receiver {
+            poly: e.corners(j),
+            normal: e.normal[ji],
+            centroid: e.centre[ji],
+        };
+        let i = exact::integrate(emitter, n_l, &receiver, tol, floor);
+        out.value += exposed * i.value.max(0.0);
+        out.err += exposed * i.err;
+        out.evals += i.evals;
+    }
+    out
+}
+
 /// A piece's point estimate `P Ω_c / π` with its rules' bound ([`piece_terms`]).
 #[derive(Clone, Copy, Debug)]
 struct Terms {
@@ -1458,6 +1501,11 @@ pub struct Expansion<'a> {
     pub seed: u64,
     /// Points per piece ([`POINTS`]).
     pub points: usize,
+    /// Relative tolerance of a piece's unoccluded factor: a piece whose sampled factor's
+    /// bar (twice its standard error plus its rules' bound) is wider is integrated over its
+    /// roots instead ([`exact_piece`]). Infinite: the sampled factor, whose error the
+    /// link's bound covers.
+    pub quadrature: f64,
 }
 
 impl Expansion<'_> {
@@ -1466,8 +1514,9 @@ impl Expansion<'_> {
     /// piece of the link's source ([`Refiner::pieces`], [`piece_factor`]), the standard
     /// error combining the visible fraction's and the piece's sampling, the bound the
     /// one-point rules'; nothing for a buried element. With `sight`, the element traces its
-    /// own view of the loudest links' sources ([`Sight`], `Terms::factor`); the rays cast
-    /// are returned. Called per element where its list is used, so that no list of every
+    /// own view of the loudest links' sources ([`Sight`], `Terms::factor`). Returns the
+    /// rays cast and the point factors spent on pieces integrated
+    /// ([`Expansion::quadrature`]; not the sampled points'). Called per element where its list is used, so that no list of every
     /// element's entries is held at once (at 10^5 triangles they were most of the bake's
     /// memory).
     pub fn entries(
@@ -1477,11 +1526,11 @@ impl Expansion<'_> {
         out: &mut Vec<(u32, f64, f64, f64)>,
         cache: &mut PointCache,
         sight: Option<&Sight>,
-    ) -> u64 {
+    ) -> (u64, u64) {
         // No test of `self.links.is_empty()` here: this runs per leaf, and a node with no
         // links adds nothing below.
         if e.buried[l as usize] {
-            return 0;
+            return (0, 0);
         }
         let li = l as usize;
         let small = Small::new(e.corners(l), e.normal[li]);
@@ -1532,6 +1581,7 @@ impl Expansion<'_> {
         }
         // Then the entries, link by link.
         let mut rays = 0;
+        let (mut emitter, mut evals) = (None, 0);
         let (mut at_link, mut at_piece) = (0, 0);
         drawn.next_chain();
         for node in chain(self.tree, e, l) {
@@ -1550,9 +1600,16 @@ impl Expansion<'_> {
                     for ((p, pts), &c) in ps.iter().zip(samples).zip(link_cones) {
                         let mut d = Spread::default();
                         let t = piece_terms(p, c, pts, e, l, &small, |_, wg, fc| d.add(wg - fc));
-                        let Some(pf) = t.map(|t| t.factor(k.v, &d, false)) else {
+                        let Some(mut t) = t else {
                             continue;
                         };
+                        let mut pf = t.factor(k.v, &d, false);
+                        if self.wants_integral(&pf) {
+                            let i = self.integral(e, p.node, l, &mut emitter);
+                            (t.base, t.bound) = (i.value, i.err);
+                            evals += i.evals;
+                            pf = t.factor(k.v, &Spread::default(), false);
+                        }
                         if pf.f > 0.0 {
                             out.push((p.node, pf.f, (pf.f * rel).hypot(pf.se), pf.bound));
                         }
@@ -1562,7 +1619,7 @@ impl Expansion<'_> {
                 // Traced: every piece's point terms first, then the leaf's view of them.
                 let Some(s) = sight else { continue };
                 let mut points: Vec<(&Sample, f64, f64)> = Vec::new();
-                let terms: SmallVec<[(u32, Terms); 4]> = ps
+                let mut terms: SmallVec<[(u32, Terms); 4]> = ps
                     .iter()
                     .zip(samples)
                     .zip(link_cones)
@@ -1573,6 +1630,27 @@ impl Expansion<'_> {
                         Some((p.node, t?))
                     })
                     .collect();
+                // A piece integrated instead of sampled: the integral is the control's
+                // mean, and each point's own term its control (`Terms::factor`).
+                if self.quadrature.is_finite() {
+                    let mut at = 0;
+                    for ((src, t), pts) in terms.iter_mut().zip(samples) {
+                        let range = at..at + pts.len();
+                        at += pts.len();
+                        let mut d = Spread::default();
+                        for &(_, wg, fc) in &points[range.clone()] {
+                            d.add(wg - fc);
+                        }
+                        if self.wants_integral(&t.factor(k.v, &d, false)) {
+                            let i = self.integral(e, *src, l, &mut emitter);
+                            (t.base, t.bound) = (i.value, i.err);
+                            evals += i.evals;
+                            for point in &mut points[range] {
+                                point.2 = point.1;
+                            }
+                        }
+                    }
+                }
                 let seen = self.checked(s, e, l, (node, j), k.v, &points, &mut rays);
                 let mut at = 0;
                 for ((src, t), pts) in terms.iter().zip(samples) {
@@ -1594,7 +1672,36 @@ impl Expansion<'_> {
                 }
             }
         }
-        rays
+        (rays, evals)
+    }
+
+    /// True when a piece's sampled factor `pf` is less accurate than
+    /// [`Expansion::quadrature`] asks.
+    fn wants_integral(&self, pf: &PieceFactor) -> bool {
+        self.quadrature.is_finite() && 2.0 * pf.se + pf.bound > self.quadrature * pf.f.abs()
+    }
+
+    /// `A_l F_lS` of element `l` from node `n`, integrated to [`Expansion::quadrature`],
+    /// with its error bound ([`exact_piece`]; `emitter` holds `l`'s polygon once made).
+    fn integral(
+        &self,
+        e: &Elements,
+        n: u32,
+        l: u32,
+        emitter: &mut Option<exact::Emitter>,
+    ) -> exact::Integral {
+        let em = emitter.get_or_insert_with(|| exact::Emitter::new(e.piece[l as usize]));
+        let floor = 1e-15 * e.area[l as usize];
+        exact_piece(
+            self.tree,
+            e,
+            &self.visible,
+            n,
+            l,
+            em,
+            self.quadrature,
+            floor,
+        )
     }
 
     /// Element `l`'s own view of a link's `points` (each with its terms `w_k F(y_k → l)`

@@ -204,6 +204,14 @@ pub struct Settings {
     /// tolerance alone decide; 1 to 3 trade links for agreement with unclustered bakes
     /// (docs/HIERARCHY.md, Clustering).
     pub cluster_accuracy: f64,
+    /// Relative tolerance of a cluster link's transfer in the final gather: a piece of its
+    /// source whose sampled factor to a leaf is less accurate than this (twice its standard
+    /// error plus its rules' bound) is integrated over the piece's faces to this tolerance
+    /// instead ([`clusters::exact_piece`]). Infinite (the default): the sampled factor,
+    /// whose error the link's own bound covers. Tight values make closed scenes conserve
+    /// their light to the quadrature's precision with cluster links in use, at the cost of
+    /// a factor per leaf and source face (docs/HIERARCHY.md, Clustering).
+    pub cluster_quadrature: f64,
     /// Split a receiving element larger than its source cluster into its element children
     /// (cluster links below the roots; [`clusters`]) instead of splitting the source down
     /// to its faces. Measured (docs/HIERARCHY.md, Clustering): on `room-spheres-12-s5`
@@ -254,6 +262,7 @@ impl Default for Settings {
             seed: 1,
             clusters: CLUSTERS,
             cluster_accuracy: f64::INFINITY,
+            cluster_quadrature: f64::INFINITY,
             split_receivers: SPLIT_RECEIVERS,
             split_shadows: SPLIT_SHADOWS,
             max_memory: None,
@@ -332,6 +341,14 @@ impl Settings {
             return bad(format!(
                 "--cluster-accuracy must be a positive number (or inf), got {}",
                 self.cluster_accuracy
+            ));
+        }
+        if !(self.cluster_quadrature > 0.0 && self.cluster_quadrature < 1.0
+            || self.cluster_quadrature == f64::INFINITY)
+        {
+            return bad(format!(
+                "--cluster-quadrature must be in (0, 1) (or inf), got {}",
+                self.cluster_quadrature
             ));
         }
         if !(self.quadrature > 0.0 && self.quadrature < 1.0) {
@@ -780,6 +797,7 @@ fn expansion<'a>(
         seed: f.seed,
         points: f.points,
         visible,
+        quadrature: s.cluster_quadrature,
     })
 }
 
@@ -1762,7 +1780,9 @@ pub fn gather_lists(
                         budget: x.sight * eps,
                     };
                     let sight = x.sight.is_finite().then_some(&sight);
-                    cost.rays += x.entries(e, l, cluster, points, sight);
+                    let (rays, evals) = x.entries(e, l, cluster, points, sight);
+                    cost.rays += rays;
+                    cost.evals += evals;
                 }
                 let (list, sum, carried) = finish_list(e, li, &out, cluster, rho, state, narrow);
                 (list, sum, carried, cost)
@@ -2304,6 +2324,13 @@ mod tests {
                 ..Settings::default()
             };
             refused(s, "--cluster-accuracy");
+        }
+        for x in [0.0, 1.0, -1.0, f64::NAN, f64::NEG_INFINITY] {
+            let s = Settings {
+                cluster_quadrature: x,
+                ..Settings::default()
+            };
+            refused(s, "--cluster-quadrature");
         }
     }
 

@@ -18,7 +18,9 @@
 //! `SpawnRayTo`; Embree does not promise what happens for hits exactly at
 //! `tnear`/`tfar`). Because both ends sit on the front side of their patches, a segment
 //! never hits its own patches, and a point in a corner cannot leak through the wall it
-//! touches. Both bounds scale with the scene, so a scaled copy casts the same rays, scaled.
+//! touches. An end closer than `floor` to the *other* end's plane (a point on the edge
+//! that its face shares with the other's) is also moved off that plane, to `floor`:
+//! rounded onto it, the segment would run inside the other face and hit it. Both bounds scale with the scene, so a scaled copy casts the same rays, scaled.
 //! Closest-hit rays leave from `eps` off their surface.
 //!
 //! What Embree holds is the scene's faces, not its patches: a planar face of the patch
@@ -378,8 +380,10 @@ impl Visibility {
         let ox = if cx >= 0.0 { n_x } else { -n_x };
         let oy = if cy <= 0.0 { n_y } else { -n_y };
         let (dx, dy) = self.offsets.ends(cx.abs() as f32, cy.abs() as f32);
-        let org = x + ox * f64::from(dx);
-        let end = y + oy * f64::from(dy);
+        // Each end kept `floor` in front of the other end's plane too (module docs).
+        let floor = f64::from(self.offsets.floor);
+        let org = x + ox * f64::from(dx) + oy * (floor - cy.abs()).max(0.0);
+        let end = y + oy * f64::from(dy) + ox * (floor - cx.abs()).max(0.0);
         (org.as_vec3(), (end - org).as_vec3(), SEGMENT_TFAR)
     }
 
@@ -737,6 +741,37 @@ f 1 2 3 4\nf 5 6 7 8\nf 9 10 11 12\nf 13 14 15\nf 16 17 18 19\n";
         let mut s = obj::parse("faces", Path::new("faces.obj"), text, &|_| unreachable!()).unwrap();
         s.make_two_sided(two_sided);
         s
+    }
+
+    /// Inside the closed unit cube every segment between two of its faces is free, even
+    /// from a point within `f32` rounding of the edge the two faces share (which, rounded
+    /// onto the other face's plane, would run inside that face without the `floor` margin
+    /// off it).
+    #[test]
+    fn segments_from_a_shared_edge_stay_off_the_other_face() {
+        let patches =
+            PatchSet::build(&Scene::load("cube").unwrap(), Resolution::Patches(6)).unwrap();
+        let vis = Visibility::new(&patches).unwrap();
+        // The wall x = 1 (normal -x) and the ceiling y = 1 (normal -y) meet along x = y = 1.
+        let (n_wall, n_ceiling) = (DVec3::NEG_X, DVec3::NEG_Y);
+        let mut segs = Vec::new();
+        for delta in [0.0, 1e-12, 1e-9, 1e-8, 3e-8, 1e-7, 1e-6] {
+            for z in [0.1, 0.5, 0.9] {
+                let x = DVec3::new(1.0, 1.0 - delta, z);
+                for y in [
+                    DVec3::new(0.5, 1.0, 0.9),
+                    DVec3::new(0.999, 1.0, z),
+                    DVec3::new(0.01, 1.0, 0.2),
+                ] {
+                    segs.push(vis.segment_ray(x, n_wall, y, n_ceiling));
+                    segs.push(vis.segment_ray(y, n_ceiling, x, n_wall));
+                }
+            }
+        }
+        let mut free = vec![false; segs.len()];
+        vis.segments_visible(&segs, &mut free);
+        let blocked: Vec<_> = segs.iter().zip(&free).filter(|(_, &f)| !f).collect();
+        assert!(blocked.is_empty(), "blocked: {blocked:?}");
     }
 
     /// Every patch of both scenes, hit at 16 inner points from the front, obliquely, and
