@@ -346,13 +346,6 @@ mod tests {
     use super::*;
     use crate::matrix::Triplets as TriMat;
 
-    fn tight() -> Options {
-        Options {
-            tolerance: 1e-12,
-            ..Options::default()
-        }
-    }
-
     /// A reciprocal random system: `F_ji = A_i F_ij / A_j` for a symmetric pattern.
     fn reciprocal(n: usize, seed: u64) -> Owned {
         let mut owned = random(n, 8, seed);
@@ -379,8 +372,8 @@ mod tests {
         let (s, asym) = symmetrise(&owned.f, &owned.area);
         assert!(asym < 1e-14, "{asym}");
         assert_eq!(s.nnz(), owned.f.nnz());
-        let (b, report) = Cg.solve(&owned.sys(), &tight()).unwrap();
-        let (exact, _) = Direct.solve(&owned.sys(), &tight()).unwrap();
+        let (b, report) = Cg.solve(&owned.sys(), &tight(1e-12)).unwrap();
+        let (exact, _) = Direct.solve(&owned.sys(), &tight(1e-12)).unwrap();
         assert!(report.converged);
         assert!(rel_diff(&exact, &b) < 1e-10);
         assert_eq!(report.history.len(), report.iterations + 1);
@@ -396,7 +389,7 @@ mod tests {
         let owned = random(60, 8, 5);
         let (_, asym) = symmetrise(&owned.f, &owned.area);
         assert!(asym > 0.1);
-        let opts = tight();
+        let opts = tight(1e-12);
         match Cg.solve(&owned.sys(), &opts) {
             Ok((b, report)) => {
                 let (exact, _) = Direct.solve(&owned.sys(), &opts).unwrap();
@@ -419,8 +412,8 @@ mod tests {
             .data_mut()
             .iter_mut()
             .for_each(|v| *v *= 1.0 + 0.01 * (rng.uniform() - 0.5));
-        let (b, report) = Cg.solve(&owned.sys(), &tight()).unwrap();
-        let (exact, _) = Direct.solve(&owned.sys(), &tight()).unwrap();
+        let (b, report) = Cg.solve(&owned.sys(), &tight(1e-12)).unwrap();
+        let (exact, _) = Direct.solve(&owned.sys(), &tight(1e-12)).unwrap();
         assert!(rel_diff(&exact, &b) < 1e-10, "{}", rel_diff(&exact, &b));
         assert!(
             report.notes.iter().any(|n| n.contains("restarts")),
@@ -436,8 +429,8 @@ mod tests {
         owned.rho[0] = [0.0; 3];
         owned.rho[1][2] = 0.0;
         owned.emit[0] = [1.0, 2.0, 3.0];
-        let (b, report) = Cg.solve(&owned.sys(), &tight()).unwrap();
-        let (exact, _) = Direct.solve(&owned.sys(), &tight()).unwrap();
+        let (b, report) = Cg.solve(&owned.sys(), &tight(1e-12)).unwrap();
+        let (exact, _) = Direct.solve(&owned.sys(), &tight(1e-12)).unwrap();
         assert!(report.converged);
         assert_eq!(b[0], owned.emit[0]);
         assert!(rel_diff(&exact, &b) < 1e-10);
@@ -446,7 +439,7 @@ mod tests {
     #[test]
     fn furnace_and_cap() {
         let owned = furnace(10, [0.3, 0.6, 0.9], [1.0; 3]);
-        let (b, _) = Cg.solve(&owned.sys(), &tight()).unwrap();
+        let (b, _) = Cg.solve(&owned.sys(), &tight(1e-12)).unwrap();
         for bi in &b {
             assert!((bi[2] - 10.0).abs() < 1e-9, "{bi:?}");
         }
@@ -454,7 +447,7 @@ mod tests {
         let opts = Options {
             max_iterations: 2,
             keep_partial: true,
-            ..tight()
+            ..tight(1e-12)
         };
         let (_, report) = Cg.solve(&owned.sys(), &opts).unwrap();
         assert!(!report.converged && report.iterations == 2);

@@ -293,21 +293,14 @@ mod tests {
     use super::super::*;
     use super::*;
 
-    fn tight() -> Options {
-        Options {
-            tolerance: 1e-13,
-            ..Options::default()
-        }
-    }
-
     #[test]
     fn agrees_with_gauss_seidel_on_random_systems() {
         for seed in [1, 2, 3] {
             let owned = random(80, 10, seed);
-            let (exact, report) = Direct.solve(&owned.sys(), &tight()).unwrap();
+            let (exact, report) = Direct.solve(&owned.sys(), &tight(1e-13)).unwrap();
             assert!(report.converged && report.iterations >= 1);
             assert_eq!(report.history.len(), report.iterations + 1);
-            let (gs, _) = GaussSeidel.solve(&owned.sys(), &tight()).unwrap();
+            let (gs, _) = GaussSeidel.solve(&owned.sys(), &tight(1e-13)).unwrap();
             assert!(rel_diff(&exact, &gs) < 1e-11, "seed {seed}");
         }
     }
@@ -341,7 +334,7 @@ mod tests {
         let f = dense(&[&[0.0, 1.5], &[1.5, 0.0]]);
         let (rho, emit, area) = ([[0.9; 3]; 2], [[1.0; 3], [0.0; 3]], [1.0; 2]);
         let sys = System::new(&f, &rho, &emit, &area).unwrap();
-        match Direct.solve(&sys, &tight()) {
+        match Direct.solve(&sys, &tight(1e-13)) {
             Err(Error::Singular { msg, .. }) => assert!(msg.contains("spectral radius"), "{msg}"),
             other => panic!("expected a refusal, got {other:?}"),
         }
@@ -354,7 +347,7 @@ mod tests {
         let f = dense(&[&[0.0, 1.0 / rho], &[1.0 / rho, 0.0]]);
         let (rho, emit, area) = ([[rho; 3]; 2], [[1.0; 3]; 2], [1.0; 2]);
         let sys = System::new(&f, &rho, &emit, &area).unwrap();
-        match Direct.solve(&sys, &tight()) {
+        match Direct.solve(&sys, &tight(1e-13)) {
             Err(Error::Singular { msg, .. }) => assert!(msg.contains("singular"), "{msg}"),
             other => panic!("expected a refusal, got {other:?}"),
         }

@@ -1028,6 +1028,16 @@ pub(crate) mod testing {
     use super::*;
     use crate::matrix::Triplets as TriMat;
 
+    /// Options asking for relative residual `tolerance`, with room for as many sweeps as
+    /// the hardest test system needs.
+    pub fn tight(tolerance: f64) -> Options {
+        Options {
+            tolerance,
+            max_iterations: 1_000_000,
+            ..Options::default()
+        }
+    }
+
     /// An owned system.
     pub struct Owned {
         pub f: Csr,
@@ -1211,21 +1221,12 @@ mod tests {
     use super::testing::*;
     use super::*;
 
-    fn tight() -> Options {
-        Options {
-            tolerance: 1e-12,
-            max_iterations: 1_000_000,
-            keep_partial: false,
-            floor: None,
-        }
-    }
-
     #[test]
     fn shelf_table_every_solver() {
         for (rho, emit, want) in shelf_table() {
             let owned = shelf(rho, emit);
             for method in Method::ALL {
-                let (b, report) = solve(method, &owned.sys(), &tight()).unwrap();
+                let (b, report) = solve(method, &owned.sys(), &tight(1e-12)).unwrap();
                 assert!(report.converged, "{method}");
                 for (p, (bp, wp)) in b.iter().zip(want).enumerate() {
                     for v in bp {
@@ -1248,7 +1249,7 @@ mod tests {
         let emit: Vec<[f64; 3]> = (0..3).map(|p| [0, 1, 2].map(|r| table[r].1[p])).collect();
         let sys = System::new(&f, &rho, &emit, &area).unwrap();
         for method in Method::ALL {
-            let (b, _) = solve(method, &sys, &tight()).unwrap();
+            let (b, _) = solve(method, &sys, &tight(1e-12)).unwrap();
             for (p, bp) in b.iter().enumerate() {
                 for (c, row) in table.iter().take(3).enumerate() {
                     assert!((bp[c] - row.2[p]).abs() < 5e-5, "{method}: B[{p}][{c}]");
@@ -1263,7 +1264,7 @@ mod tests {
         let emit = [1.0, 2.0, 0.5];
         let owned = furnace(12, rho, emit);
         for method in Method::ALL {
-            let (b, report) = solve(method, &owned.sys(), &tight()).unwrap();
+            let (b, report) = solve(method, &owned.sys(), &tight(1e-12)).unwrap();
             assert!(report.converged);
             for bi in &b {
                 for c in 0..3 {
@@ -1295,7 +1296,7 @@ mod tests {
             want[1][c] = (a * emit[1][c] - cc * emit[0][c]) / det;
         }
         for method in Method::ALL {
-            let (b, report) = solve(method, &sys, &tight()).unwrap();
+            let (b, report) = solve(method, &sys, &tight(1e-12)).unwrap();
             assert!(rel_diff(&want, &b) < 1e-10, "{method}: {b:?} not {want:?}");
             assert!(report.residual <= 1e-12);
             assert!((residual(&sys, &b) - report.residual).abs() <= 1e-15);
@@ -1308,7 +1309,7 @@ mod tests {
         let sys = owned.sys();
         let results: Vec<_> = Method::ALL
             .iter()
-            .map(|&m| solve(m, &sys, &tight()).unwrap())
+            .map(|&m| solve(m, &sys, &tight(1e-12)).unwrap())
             .collect();
         for (_, report) in &results {
             assert!(
@@ -1379,7 +1380,7 @@ mod tests {
             let opts = Options {
                 keep_partial: true,
                 max_iterations: 1_000_000,
-                ..tight()
+                ..tight(1e-12)
             };
             match solve(method, &sys, &opts) {
                 Err(Error::NotConverged { hint, residual, .. }) => {
@@ -1406,7 +1407,7 @@ mod tests {
         let (rho, emit, area) = ([[0.9; 3], [0.5; 3]], [[1.0; 3], [0.0; 3]], [1.0; 2]);
         let sys = System::new(&f, &rho, &emit, &area).unwrap();
         for method in Method::ALL {
-            let (b, report) = solve(method, &sys, &tight()).unwrap();
+            let (b, report) = solve(method, &sys, &tight(1e-12)).unwrap();
             assert!(report.converged);
             assert!(
                 report.notes.iter().any(|n| n.contains("patch 0")),
