@@ -539,8 +539,9 @@ impl AreaMc {
 /// into `g`, whether the two points face each other into `ok` (the kernel is positive and a
 /// ray is needed), and the segment ray between them into `org`/`dir` (structure of
 /// arrays): both ends moved off their surfaces along their own normals by the one offset
-/// policy ([`Offsets::ends`]), the case [`crate::visibility::Visibility::segment_ray`]
-/// selects for facing points, without its two tests.
+/// policy ([`Offsets::ends`]) and kept `floor` in front of each other's plane, the case
+/// [`crate::visibility::Visibility::segment_ray`] selects for facing points, without its
+/// two tests.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn segments(
@@ -571,7 +572,11 @@ fn segments(
         g[k] = (cx * inv) * (cy * inv);
         ok[k] = (cx > 0.0) & (cy > 0.0) & (r2 > 0.0);
         let (ex, ey) = off.ends(cx.abs(), cy.abs());
-        let (ox, oy) = (n_x * ex, n_y * ey);
+        // Each end also kept `floor` in front of the other end's plane (the same policy).
+        let (ox, oy) = (
+            n_x * ex + n_y * (off.floor - cy).max(0.0),
+            n_y * ey + n_x * (off.floor - cx).max(0.0),
+        );
         let org = (x0[k] + ox.x, x1[k] + ox.y, x2[k] + ox.z);
         let end = (y0[k] + oy.x, y1[k] + oy.y, y2[k] + oy.z);
         (o0[k], o1[k], o2[k]) = org;
