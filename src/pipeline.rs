@@ -1279,7 +1279,7 @@ fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
     for (k, p) in h.passes.iter().enumerate() {
         let _ = writeln!(
             o,
-            "  pass {}: {} links refined -> {} links, {} elements, {} rays; solve {} iterations (change {:.1e}); {:.2}s + {:.2}s",
+            "  pass {}: {} links refined -> {} links, {} elements, {} rays; solve {} iterations (change {:.1e}); {:.2}s + {:.2}s{}",
             k + 1,
             p.refined,
             p.links,
@@ -1288,7 +1288,12 @@ fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
             p.solve.iterations,
             p.solve.change,
             p.refine_seconds,
-            p.solve_seconds
+            p.solve_seconds,
+            if p.gather_seconds > 0.0 {
+                format!(" (of which the gather lists {:.2}s)", p.gather_seconds)
+            } else {
+                String::new()
+            }
         );
     }
     let _ = writeln!(

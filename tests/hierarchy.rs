@@ -628,7 +628,8 @@ fn output_points(patches: &PatchSet, sol: &Solution) -> Vec<Option<f64>> {
 }
 
 /// Clustered against unclustered on a 10^4-triangle scene (`room-spheres-8`: 10,240
-/// sphere triangles and the room, `--error 0.05`, or `RADIOSITY_TEN_K_ERROR`): at least 10
+/// sphere triangles and the room, `--error 0.05`, or `RADIOSITY_TEN_K_ERROR`; the link
+/// rays per side from `RADIOSITY_TEN_K_RAYS`, `--link-rays`): at least 10
 /// times fewer initial links clustered, object averages within 1%, root (input face)
 /// averages within 2% and points within 3% at the 99th percentile (the output meshes'
 /// values there within 1%), and every root's difference within the sum of the two
@@ -646,8 +647,13 @@ fn clustered_and_unclustered_at_ten_thousand_triangles() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(0.05);
+    let rays = std::env::var("RADIOSITY_TEN_K_RAYS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(Settings::default().rays);
     let base = Settings {
         error,
+        rays,
         ..Default::default()
     };
     let res = Resolution::DiagonalFraction(0.25);

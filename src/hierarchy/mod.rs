@@ -382,7 +382,9 @@ pub struct Pass {
     pub solve: SolveStats,
     /// Seconds refining.
     pub refine_seconds: f64,
-    /// Seconds solving.
+    /// Seconds building the leaves' gather lists (the last pass; 0 before it).
+    pub gather_seconds: f64,
+    /// Seconds solving (with the gather lists on the last pass).
     pub solve_seconds: f64,
 }
 
@@ -644,6 +646,7 @@ pub fn run(
             );
         let refine_seconds = t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
+        let mut gather_seconds = 0.0;
         let (rho, emit) = materials(&e, &material);
         let m = Materials {
             rho: &rho,
@@ -677,6 +680,7 @@ pub fn run(
                 s.accuracy,
                 (s.descend, s.descend_low, s.kernel_cut),
             );
+            gather_seconds = t1.elapsed().as_secs_f64();
             report.evals += cost.evals;
             report.rays += cost.rays;
             report.gather = gather.len();
@@ -727,6 +731,7 @@ pub fn run(
             rays: report.rays - rays_before,
             solve: stats,
             refine_seconds,
+            gather_seconds,
             solve_seconds: t1.elapsed().as_secs_f64(),
         };
         progress(&pass);
