@@ -634,7 +634,7 @@ fn output_points(patches: &PatchSet, sol: &Solution) -> Vec<Option<f64>> {
 /// leaf points within 3% at the 99th percentile, the output meshes' values at those
 /// points within 1% at the 99th percentile and, at these settings or tighter, every one
 /// within 3%; every root's difference within the sum of the two bakes' estimated errors.
-/// The unclustered bake evaluates 10^8 candidate pairs (11 GB peak, about 15 minutes
+/// The unclustered bake evaluates 10^8 candidate pairs (6.4 GB peak, about 20 minutes
 /// here): run by hand,
 /// `cargo test --release --test tests clustered_and_unclustered_at_ten_thousand -- --ignored --nocapture`.
 /// With `RADIOSITY_TEN_K_FLOOR=1` it also bakes the unclustered scene at the next seed and
