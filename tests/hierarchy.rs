@@ -627,6 +627,15 @@ fn output_points(patches: &PatchSet, sol: &Solution) -> Vec<Option<f64>> {
     out
 }
 
+/// The value of the environment variable `name`, or `default` when it is unset or does
+/// not parse.
+fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
 /// Clustered against unclustered on a 10^4-triangle scene (`room-spheres-8`: 10,240
 /// sphere triangles and the room), at `--error 0.01 --link-rays 8` (or
 /// `RADIOSITY_TEN_K_ERROR` and `RADIOSITY_TEN_K_RAYS`; the seed from
@@ -645,18 +654,9 @@ fn output_points(patches: &PatchSet, sol: &Solution) -> Vec<Option<f64>> {
 #[test]
 #[ignore]
 fn clustered_and_unclustered_at_ten_thousand_triangles() {
-    let error = std::env::var("RADIOSITY_TEN_K_ERROR")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(0.01);
-    let rays = std::env::var("RADIOSITY_TEN_K_RAYS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(8);
-    let seed = std::env::var("RADIOSITY_TEN_K_SEED")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(Settings::default().seed);
+    let error = env_or("RADIOSITY_TEN_K_ERROR", 0.01);
+    let rays = env_or("RADIOSITY_TEN_K_RAYS", 8);
+    let seed = env_or("RADIOSITY_TEN_K_SEED", Settings::default().seed);
     let base = Settings {
         error,
         rays,
@@ -804,8 +804,8 @@ fn clustered_and_unclustered_at_ten_thousand_triangles() {
     // --link-rays 8 (2026-12-06): 1/32 of the initial links, objects within 0.14%, roots
     // within 0.35% at the 99th percentile (worst 2.40%, one sphere face), leaf points
     // 0.41%, output points 0.24% and every one within 3% (worst 2.34%). With the default
-    // 4 x 4 rays a link and the default split receivers and split shadows: at --error 0.05, 1/55 of the initial links, objects
-    // within 0.17%, roots within 1.81% at the 99th percentile (0.80% before receivers and
+    // 4 x 4 rays a link and the default split receivers and split shadows: at --error
+    // 0.05, 1/55 of the initial links, objects within 0.17%, roots within 1.81% at the 99th percentile (0.80% before receivers and
     // shadows were split: single sphere faces, one leaf each, whose estimated errors are
     // 3-8% in both bakes), points within 2.00% at the 99th percentile, every root's
     // difference within the sum of the two bakes' estimated errors. At --error 0.02 (a
