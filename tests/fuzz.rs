@@ -201,13 +201,6 @@ fn corpus(dirs: &[&str], exts: &[&str]) -> Vec<(String, Vec<u8>)> {
     out
 }
 
-fn env_count(name: &str, default: u64) -> u64 {
-    std::env::var(name)
-        .ok()
-        .and_then(|v| v.replace('_', "").parse().ok())
-        .unwrap_or(default)
-}
-
 /// Runs `cases` cases of `run` on inputs from `make`; fails on the first panic with the
 /// case number and input.
 fn fuzz(what: &str, cases: u64, mut make: impl FnMut(u64) -> Vec<u8>, run: impl Fn(&[u8])) {
@@ -242,8 +235,8 @@ fn fuzz(what: &str, cases: u64, mut make: impl FnMut(u64) -> Vec<u8>, run: impl 
 
 #[test]
 fn fuzz_the_obj_mtl_loader_and_mesher() {
-    let seed = env_count("RADIOSITY_FUZZ_SEED", 1);
-    let cases = env_count("RADIOSITY_FUZZ_LOADER", 20_000);
+    let seed = crate::env_or::<u64>("RADIOSITY_FUZZ_SEED", 1);
+    let cases = crate::env_or::<u64>("RADIOSITY_FUZZ_LOADER", 20_000);
     let objs = corpus(
         &["scenes", "scenes/invalid", "tests/fuzz/corpus"],
         &[".obj"],
@@ -309,8 +302,8 @@ fn fuzz_the_obj_mtl_loader_and_mesher() {
 
 #[test]
 fn fuzz_the_factors_folder_reader() {
-    let seed = env_count("RADIOSITY_FUZZ_SEED", 1);
-    let cases = env_count("RADIOSITY_FUZZ_READER", 20_000);
+    let seed = crate::env_or::<u64>("RADIOSITY_FUZZ_SEED", 1);
+    let cases = crate::env_or::<u64>("RADIOSITY_FUZZ_READER", 20_000);
     let dir = root().join("tests/fuzz/factors");
     let read = |name: &str| std::fs::read(dir.join(name)).expect("corpus factors file");
     let (f, se, prov) = (read("F.mtx"), read("stderr.mtx"), read("provenance.json"));
@@ -400,8 +393,8 @@ fn rezip(members: &[(String, Vec<u8>)]) -> Vec<u8> {
 
 #[test]
 fn fuzz_the_npz_reader() {
-    let seed = env_count("RADIOSITY_FUZZ_SEED", 1);
-    let cases = env_count("RADIOSITY_FUZZ_NPZ", 5_000);
+    let seed = crate::env_or::<u64>("RADIOSITY_FUZZ_SEED", 1);
+    let cases = crate::env_or::<u64>("RADIOSITY_FUZZ_NPZ", 5_000);
     let dir = root().join("tests/fuzz/factors");
     let f = std::fs::read(dir.join("F.mtx")).expect("corpus F.mtx");
     let prov = std::fs::read_to_string(dir.join("provenance.json")).expect("provenance");

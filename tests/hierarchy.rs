@@ -627,15 +627,6 @@ fn output_points(patches: &PatchSet, sol: &Solution) -> Vec<Option<f64>> {
     out
 }
 
-/// The value of the environment variable `name`, or `default` when it is unset or does
-/// not parse.
-fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
-    std::env::var(name)
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
-
 /// Clustered against unclustered on a 10^4-triangle scene (`room-spheres-8`: 10,240
 /// sphere triangles and the room), at `--error 0.01 --link-rays 8` (or
 /// `RADIOSITY_TEN_K_ERROR` and `RADIOSITY_TEN_K_RAYS`; the seed from
@@ -654,9 +645,9 @@ fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
 #[test]
 #[ignore]
 fn clustered_and_unclustered_at_ten_thousand_triangles() {
-    let error = env_or("RADIOSITY_TEN_K_ERROR", 0.01);
-    let rays = env_or("RADIOSITY_TEN_K_RAYS", 8);
-    let seed = env_or("RADIOSITY_TEN_K_SEED", Settings::default().seed);
+    let error = crate::env_or("RADIOSITY_TEN_K_ERROR", 0.01);
+    let rays = crate::env_or("RADIOSITY_TEN_K_RAYS", 8);
+    let seed = crate::env_or("RADIOSITY_TEN_K_SEED", Settings::default().seed);
     let base = Settings {
         error,
         rays,
