@@ -1654,17 +1654,24 @@ impl Expansion<'_> {
                 let seen = self.checked(s, e, l, (node, j), k.v, &points, &mut rays);
                 let mut at = 0;
                 for ((src, t), pts) in terms.iter().zip(samples) {
-                    let mut d = Spread::default();
+                    let (mut d, mut d_open) = (Spread::default(), Spread::default());
                     let range = at..at + pts.len();
                     for (&(_, wg, fc), &v_k) in points[range.clone()].iter().zip(&seen[range]) {
                         d.add(wg * v_k - k.v * fc);
+                        d_open.add(wg - fc);
                     }
                     at += pts.len();
                     let pf = t.factor(k.v, &d, true);
                     // The bar keeps the link's fraction's: the leaf's few segments found its
                     // view only where they went (as a checked element entry's bar is at
-                    // least its own rays').
-                    let se = (pf.f * rel).hypot(pf.se);
+                    // least its own rays'). It is the fraction's standard error times the
+                    // piece's unoccluded factor, as for an entry not traced: the traced
+                    // factor times the fraction's relative bar would grow without bound
+                    // where the link is almost hidden and the leaf sees the source (on
+                    // `room-spheres-24`, links with `v` near 1e-7 gave a sphere leaf of
+                    // radiosity 0.043 a bar of 7.9).
+                    let open = t.factor(1.0, &d_open, false).f.abs();
+                    let se = (open * k.v_se).hypot(pf.se);
                     // A traced estimate below 0 stays: it is unbiased only so.
                     if pf.f != 0.0 {
                         out.push((*src, pf.f, se, pf.bound));
