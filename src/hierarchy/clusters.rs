@@ -1654,11 +1654,11 @@ impl Expansion<'_> {
                 let seen = self.checked(s, e, l, (node, j), k.v, &points, &mut rays);
                 let mut at = 0;
                 for ((src, t), pts) in terms.iter().zip(samples) {
-                    let (mut d, mut d_open) = (Spread::default(), Spread::default());
+                    let (mut d, mut open_sum) = (Spread::default(), 0.0);
                     let range = at..at + pts.len();
                     for (&(_, wg, fc), &v_k) in points[range.clone()].iter().zip(&seen[range]) {
                         d.add(wg * v_k - k.v * fc);
-                        d_open.add(wg - fc);
+                        open_sum += wg - fc;
                     }
                     at += pts.len();
                     let pf = t.factor(k.v, &d, true);
@@ -1670,7 +1670,7 @@ impl Expansion<'_> {
                     // where the link is almost hidden and the leaf sees the source (on
                     // `room-spheres-24`, links with `v` near 1e-7 gave a sphere leaf of
                     // radiosity 0.043 a bar of 7.9).
-                    let open = t.factor(1.0, &d_open, false).f.abs();
+                    let open = ((t.base + open_sum) / t.area).abs();
                     let se = (open * k.v_se).hypot(pf.se);
                     // A traced estimate below 0 stays: it is unbiased only so.
                     if pf.f != 0.0 {
