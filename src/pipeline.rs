@@ -1276,6 +1276,11 @@ fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
             h.cluster_pairs
         );
     }
+    let _ = writeln!(
+        o,
+        "  start: contacts, buried leaves and cluster tree {:.2}s; {} initial links {:.2}s",
+        h.prepare_seconds, h.initial_links, h.start_seconds
+    );
     for (k, p) in h.passes.iter().enumerate() {
         let _ = writeln!(
             o,

@@ -220,6 +220,15 @@ pub struct Tolerance {
     pub hide: f64,
 }
 
+/// True when some of element `s` is strictly (by more than `tol`) in front of element
+/// `r`'s plane and some of `r` in front of `s`'s: else no light passes between them
+/// (neighbours on a convex surface, coplanar elements, elements turned away).
+pub fn facing(e: &Elements, tol: f64, r: u32, s: u32) -> bool {
+    let (ri, si) = (r as usize, s as usize);
+    range((e.normal[ri], e.centre[ri]), e.corners(s)).1 > tol
+        && range((e.normal[si], e.centre[si]), e.corners(r)).1 > tol
+}
+
 /// Evaluates the link `r ← s`; `None` when the two cannot exchange light (one behind the
 /// other's plane, one buried, or every visibility ray blocked where even the light the
 /// rays could have missed is within the tolerance). The unoccluded integral is taken to
@@ -254,8 +263,7 @@ pub fn evaluate(
     if ctx.visible[ri] <= 0.0 || ctx.visible[si] <= 0.0 {
         return (None, cost);
     }
-    // Facing: some of s strictly in front of r, and some of r in front of s.
-    if range((nr, e.centre[ri]), ps).1 <= ctx.tol || range((ns, e.centre[si]), pr).1 <= ctx.tol {
+    if !facing(e, ctx.tol, r, s) {
         return (None, cost);
     }
     let receiver = Receiver {

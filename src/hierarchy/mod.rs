@@ -427,6 +427,12 @@ pub struct Report {
     pub rays: u64,
     /// Point-to-polygon evaluations in all.
     pub evals: u64,
+    /// Seconds before the links: contact splits, buried leaves, the blockers' index and
+    /// the cluster tree.
+    pub prepare_seconds: f64,
+    /// Seconds making and evaluating the initial links (with clusters, the first cluster
+    /// refinement from the top cluster's self-link).
+    pub start_seconds: f64,
     /// Passes, in order.
     pub passes: Vec<Pass>,
     /// Absolute link tolerance of the last pass.
@@ -486,6 +492,7 @@ pub fn run(
     progress: &(dyn Fn(&Pass) + Sync),
 ) -> crate::Result<Solution> {
     s.validate()?;
+    let t_prepare = Instant::now();
     let diag = patches.diagonal;
     let tol = 1e-9 * diag;
     let min_area = s.min_area.unwrap_or((diag / 512.0).powi(2));
@@ -539,6 +546,8 @@ pub fn run(
     report.auto_clusters = clustered && s.clusters == Clustering::Auto;
     let tree = (clustered && e.roots >= 2).then(|| Tree::build(&e, &visible, &rho_max));
     let tree = tree.as_ref();
+    report.prepare_seconds = t_prepare.elapsed().as_secs_f64();
+    let t_start = Instant::now();
     let mut clinks = tree.map_or_else(Links::default, |t| Links::new(t, e.len()));
     state.pull_clusters(tree, &visible);
     let mut links: Vec<Vec<Link>> = vec![Vec::new(); e.len()];
@@ -560,7 +569,7 @@ pub fn run(
                 &mut clinks,
                 &rho_max,
                 Some(vec![(top, top)]),
-                (b_ref, s.error * b_ref, min_area),
+                (b_ref, s.error * b_ref, min_area, tol),
                 s,
                 &mut report,
             );
@@ -584,6 +593,7 @@ pub fn run(
         report.evals += cost.evals;
     }
     report.initial_links = links.iter().map(Vec::len).sum::<usize>() + clinks.len();
+    report.start_seconds = t_start.elapsed().as_secs_f64();
 
     let mut error: Vec<f64> = Vec::new();
     let mut rel = s.relative(b_ref);
@@ -617,7 +627,7 @@ pub fn run(
                 &mut clinks,
                 &rho_max,
                 None,
-                (0.0, eps, min_area),
+                (0.0, eps, min_area, tol),
                 s,
                 &mut report,
             );
@@ -792,7 +802,16 @@ fn expansion<'a>(
     let t = tree?;
     let visible = e.visible_areas();
     let rho_max = vec![0.0; e.roots];
-    let f = refiner(t, e, &visible, &rho_max, vis, state, (0.0, eps, 0.0), s);
+    let f = refiner(
+        t,
+        e,
+        &visible,
+        &rho_max,
+        vis,
+        state,
+        (0.0, eps, 0.0, 0.0),
+        s,
+    );
     let pieces = f.all_pieces(clinks, s.descend);
     Some(clusters::Expansion {
         tree: t,
@@ -819,12 +838,24 @@ fn transfer(
     let t = tree?;
     let visible = e.visible_areas();
     let rho_max = vec![0.0; e.roots];
-    let mut f = refiner(t, e, &visible, &rho_max, vis, state, (0.0, eps, 0.0), s);
+    let mut f = refiner(
+        t,
+        e,
+        &visible,
+        &rho_max,
+        vis,
+        state,
+        (0.0, eps, 0.0, 0.0),
+        s,
+    );
     f.points = 0;
     Some(transfer::Transfer::build(&f, clinks, s.descend))
 }
 
-/// The cluster refinement's view of the current solution.
+/// The cluster refinement's view of the current solution: `floor` the radiosity assumed
+/// for sources not solved yet, `eps` the absolute link tolerance, `min_area` the smallest
+/// receiver it may split, `tol` the distance below which a point counts as on a plane
+/// (0 where the refiner only cuts sources into pieces).
 #[allow(clippy::too_many_arguments)]
 fn refiner<'a>(
     tree: &'a Tree,
@@ -833,7 +864,7 @@ fn refiner<'a>(
     rho_max: &'a [f64],
     vis: &'a Visibility,
     state: &'a State,
-    (floor, eps, min_area): (f64, f64, f64),
+    (floor, eps, min_area, tol): (f64, f64, f64, f64),
     s: &Settings,
 ) -> Refiner<'a> {
     Refiner {
@@ -848,6 +879,7 @@ fn refiner<'a>(
         clusters: &state.clusters,
         floor,
         eps,
+        tol,
         hide: s.hide,
         rays: s.rays,
         seed: s.seed,
@@ -902,7 +934,7 @@ impl Grow<'_> {
 /// Cluster refinement from the pairs `start`, or (with `None`) the re-examination of the
 /// cluster links with today's radiosity ([`clusters::recheck`]), splitting the receiving
 /// elements it asks for and refining their children's pairs, round after round, until
-/// none is asked for. `(floor, eps, min_area)` as in [`refiner`]. Returns the pairs of
+/// none is asked for. `(floor, eps, min_area, tol)` as in [`refiner`]. Returns the pairs of
 /// elements for element links and the number of cluster links replaced.
 #[allow(clippy::too_many_arguments)]
 fn refine_clusters(
@@ -911,7 +943,7 @@ fn refine_clusters(
     clinks: &mut Links,
     rho_max: &[f64],
     start: Option<Vec<(u32, u32)>>,
-    (floor, eps, min_area): (f64, f64, f64),
+    (floor, eps, min_area, tol): (f64, f64, f64, f64),
     s: &Settings,
     report: &mut Report,
 ) -> (Vec<(u32, u32)>, usize) {
@@ -927,7 +959,7 @@ fn refine_clusters(
             rho_max,
             grow.vis,
             grow.state,
-            (floor, eps, min_area),
+            (floor, eps, min_area, tol),
             s,
         );
         let mut made = match frontier.take() {
