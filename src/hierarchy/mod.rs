@@ -1727,10 +1727,11 @@ pub fn gather_lists(
                         // A roulette entry's bar adds the roulette's own spread: the entry is
                         // `count` times the traced value, or nothing, so its variance is
                         // about `(1 - ROULETTE) f²`.
+                        // (`f` may be below 0, an estimate around a prior; its bar is not.)
                         let se = if en.count > 1.0 {
-                            f * (en.v_bar.powi(2) + 1.0 - link::ROULETTE).sqrt()
+                            f.abs() * (en.v_bar.powi(2) + 1.0 - link::ROULETTE).sqrt()
                         } else {
-                            f * en.v_bar
+                            f.abs() * en.v_bar
                         };
                         out.push((s, f, en.q_bar * en.count / exposed, se));
                         continue;
