@@ -69,8 +69,37 @@ pub struct Stratum {
     pub piece: Piece,
     map: ToSource,
     /// `√A` of the piece over its distance from the receiver (floored at the receiver's
-    /// side): which piece is split next.
+    /// side), which decides the piece split next, when `exact`; until then an upper bound
+    /// on it, from the two polygons' enclosing balls ([`Stratum::settle`]).
     nearness: f64,
+    exact: bool,
+}
+
+/// The receiver as [`strata`] measures the pieces' distances from it: its corners, an
+/// enclosing ball, and the floor of the distance (its side).
+struct Receiver<'a> {
+    corners: &'a [DVec3],
+    centre: DVec3,
+    radius: f64,
+    floor: f64,
+}
+
+impl Receiver<'_> {
+    /// A lower bound on the distance of the polygon `p` from the receiver: their enclosing
+    /// balls' gap (around the corners' mean), less a relative `1e-12` so that rounding
+    /// cannot put it above the polygons' distance.
+    fn below(&self, p: &[DVec3]) -> f64 {
+        let (c, r) = ball(p);
+        let d = c.distance(self.centre);
+        d - r - self.radius - 1e-12 * (d + r + self.radius)
+    }
+}
+
+/// The corners' mean and the largest distance of a corner from it.
+fn ball(p: &[DVec3]) -> (DVec3, f64) {
+    let c = p.iter().copied().sum::<DVec3>() / p.len() as f64;
+    let r = p.iter().map(|&q| q.distance(c)).fold(0.0, f64::max);
+    (c, r)
 }
 
 impl Stratum {
@@ -96,7 +125,7 @@ impl Stratum {
     }
 
     /// The four pieces of [`Piece::split`], in its order, with their maps.
-    fn split(&self, receiver: &[DVec3], floor: f64) -> [Stratum; 4] {
+    fn split(&self, receiver: &Receiver) -> [Stratum; 4] {
         let pieces = self.piece.split();
         std::array::from_fn(|k| {
             let map = match self.map {
@@ -122,16 +151,27 @@ impl Stratum {
                     })
                 }
             };
-            Stratum::new(pieces[k], map, receiver, floor)
+            Stratum::new(pieces[k], map, receiver)
         })
     }
 
-    fn new(piece: Piece, map: ToSource, receiver: &[DVec3], floor: f64) -> Stratum {
-        let d = polygon_distance(piece.corners(), receiver).max(floor);
+    /// The piece with the upper bound on its nearness.
+    fn new(piece: Piece, map: ToSource, receiver: &Receiver) -> Stratum {
+        let below = receiver.below(piece.corners()).max(receiver.floor);
         Stratum {
             piece,
             map,
-            nearness: piece.area().sqrt() / d,
+            nearness: piece.area().sqrt() / below,
+            exact: false,
+        }
+    }
+
+    /// The piece's nearness made exact: `√A` over the polygons' distance (floored).
+    fn settle(&mut self, receiver: &Receiver) {
+        if !self.exact {
+            let d = polygon_distance(self.piece.corners(), receiver.corners).max(receiver.floor);
+            self.nearness = self.piece.area().sqrt() / d;
+            self.exact = true;
         }
     }
 }
@@ -179,10 +219,21 @@ pub fn strata(e: &Elements, r: u32, s: u32, rays: usize) -> Option<SmallVec<[Str
         },
         Piece::Tri(_) => ToSource::Tri([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
     };
-    let root = Stratum::new(e.piece[si], whole, pr, floor);
+    let (centre, radius) = ball(pr);
+    let receiver = Receiver {
+        corners: pr,
+        centre,
+        radius,
+        floor,
+    };
+    let root = Stratum::new(e.piece[si], whole, &receiver);
     let mut out: SmallVec<[Stratum; 16]> = smallvec::smallvec![root];
     while out.len() + 3 <= MOST_PIECES {
-        // The nearest piece for its size (the first of equals: the same on every run).
+        // The nearest piece for its size (the first of equals: the same on every run),
+        // by the pieces' bounds, each made exact only when it comes first: the first
+        // of the largest bounds, once exact, is the first of the largest nearnesses (every
+        // piece before it is bounded below it, every other at most by it). A polygons'
+        // distance is the costly part; most pieces never need theirs.
         let (k, near) = out
             .iter()
             .enumerate()
@@ -196,7 +247,11 @@ pub fn strata(e: &Elements, r: u32, s: u32, rays: usize) -> Option<SmallVec<[Str
         if near <= STRATUM_CUT && out.len() >= rays {
             break;
         }
-        let parts = out[k].split(pr, floor);
+        if !out[k].exact {
+            out[k].settle(&receiver);
+            continue;
+        }
+        let parts = out[k].split(&receiver);
         out[k] = parts[0];
         out.extend_from_slice(&parts[1..]);
     }
@@ -243,8 +298,15 @@ mod tests {
             assert!(got.len() >= 16 && got.len() <= MOST_PIECES, "{}", got.len());
             let area: f64 = got.iter().map(|p| p.piece.area()).sum();
             assert!((area / e.area[s as usize] - 1.0).abs() < 1e-12, "{area}");
+            let floor = e.area[r as usize].sqrt();
             for p in &got {
-                assert!(p.nearness <= NEAR_CUT, "{}", p.nearness);
+                let d = polygon_distance(p.piece.corners(), e.corners(r)).max(floor);
+                let nearness = p.piece.area().sqrt() / d;
+                assert!(
+                    nearness <= p.nearness * (1.0 + 1e-12),
+                    "{nearness} over its bound"
+                );
+                assert!(nearness <= NEAR_CUT, "{nearness}");
                 for (u, v) in [(0.1, 0.2), (0.9, 0.5), (0.5, 0.99), (0.0, 0.0)] {
                     let (us, vs) = p.to_source(u, v);
                     let a = p.piece.at(u, 1.0 - u, v, 1.0 - v).0;
