@@ -112,8 +112,9 @@ impl Piece {
         }
     }
 
-    /// Centre (image of the parameter centre) and the largest corner distance from it.
-    fn ball(&self) -> (DVec3, f64) {
+    /// Centre (image of the parameter centre) and the largest corner distance from it: a
+    /// ball that holds the piece.
+    pub fn ball(&self) -> (DVec3, f64) {
         let ctr = self.at(0.5, 0.5, 0.5, 0.5).0;
         let r = self
             .corners()

@@ -85,21 +85,14 @@ struct Receiver<'a> {
 }
 
 impl Receiver<'_> {
-    /// A lower bound on the distance of the polygon `p` from the receiver: their enclosing
-    /// balls' gap (around the corners' mean), less a relative `1e-12` so that rounding
-    /// cannot put it above the polygons' distance.
-    fn below(&self, p: &[DVec3]) -> f64 {
-        let (c, r) = ball(p);
+    /// A lower bound on the distance of `piece` from the receiver: their enclosing balls'
+    /// gap ([`Piece::ball`]), less a relative `1e-12` so that rounding cannot put it above
+    /// the polygons' distance.
+    fn below(&self, piece: &Piece) -> f64 {
+        let (c, r) = piece.ball();
         let d = c.distance(self.centre);
         d - r - self.radius - 1e-12 * (d + r + self.radius)
     }
-}
-
-/// The corners' mean and the largest distance of a corner from it.
-fn ball(p: &[DVec3]) -> (DVec3, f64) {
-    let c = p.iter().copied().sum::<DVec3>() / p.len() as f64;
-    let r = p.iter().map(|&q| q.distance(c)).fold(0.0, f64::max);
-    (c, r)
 }
 
 impl Stratum {
@@ -157,7 +150,7 @@ impl Stratum {
 
     /// The piece with the upper bound on its nearness.
     fn new(piece: Piece, map: ToSource, receiver: &Receiver) -> Stratum {
-        let below = receiver.below(piece.corners()).max(receiver.floor);
+        let below = receiver.below(&piece).max(receiver.floor);
         Stratum {
             piece,
             map,
@@ -219,7 +212,7 @@ pub fn strata(e: &Elements, r: u32, s: u32, rays: usize) -> Option<SmallVec<[Str
         },
         Piece::Tri(_) => ToSource::Tri([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
     };
-    let (centre, radius) = ball(pr);
+    let (centre, radius) = e.piece[r as usize].ball();
     let receiver = Receiver {
         corners: pr,
         centre,
