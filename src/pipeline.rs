@@ -1259,8 +1259,19 @@ fn format_hierarchy(o: &mut String, s: &BakeSummary, h: &hierarchy::Report) {
     );
     let _ = writeln!(
         o,
-        "  links: {} ({} partly visible; {} at the start), leaf gather entries {}, {} rays, {} point-factor evaluations, Embree {}",
-        h.links, h.partial_links, h.initial_links, h.gather, h.rays, h.evals, s.embree
+        "  links: {} ({} partly visible; {} at the start), leaf gather entries {}{}, {} rays, {} point-factor evaluations, Embree {}",
+        h.links,
+        h.partial_links,
+        h.initial_links,
+        h.gather,
+        if h.clusters > 0 {
+            format!(" ({} from cluster links)", h.gather_from_clusters)
+        } else {
+            String::new()
+        },
+        h.rays,
+        h.evals,
+        s.embree
     );
     if h.clusters > 0 {
         let _ = writeln!(

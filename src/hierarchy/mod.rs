@@ -417,6 +417,9 @@ pub struct Report {
     pub cluster_pairs: usize,
     /// Entries of the leaves' gather lists (their ancestor chains' links).
     pub gather: usize,
+    /// Of those, the entries from cluster links (a piece of a source cluster each,
+    /// [`clusters::Expansion::entries`]); the rest are from element links.
+    pub gather_from_clusters: usize,
     /// Largest factor sum of a visible leaf (its gather list), and that sum's error bar.
     pub max_row_sum: (f64, crate::matrix::Bar),
     /// Visible leaves whose factor sum exceeds 1 by more than 3 standard errors plus its
@@ -680,7 +683,7 @@ pub fn run(
             };
             let extra = expansion(tree, &e, &clinks, vis, &state, eps, s);
             check_gather(&e, &links, extra.as_ref(), tree.is_some(), s)?;
-            let (gather, cost) = gather_lists(
+            let (gather, cost, from_clusters) = gather_lists(
                 &ctx,
                 &links,
                 extra.as_ref(),
@@ -694,6 +697,7 @@ pub fn run(
             report.evals += cost.evals;
             report.rays += cost.rays;
             report.gather = gather.len();
+            report.gather_from_clusters = from_clusters;
             report.max_row_sum = (0.0, crate::matrix::Bar::ZERO);
             report.rows_over_one = 0;
             for &(sum, bar) in &gather.row_sum {
@@ -1434,7 +1438,7 @@ fn stands_for(k: &Link, l: u32, seed: u64) -> Option<f64> {
 /// ([`Settings::kernel_cut`], `kernel_weighting_error`).
 ///
 /// Factors are integrated to `accuracy × ε_l / (ρ_l B_s)` (as in `tolerances`). Returns
-/// the lists and the work spent.
+/// the lists, the work spent and how many of the entries came from cluster links.
 #[allow(clippy::too_many_arguments)]
 pub fn gather_lists(
     ctx: &Context,
@@ -1445,16 +1449,17 @@ pub fn gather_lists(
     rel: Relative,
     accuracy: f64,
     (descend, descend_low, kernel): (f64, f64, f64),
-) -> (Gather, Cost) {
+) -> (Gather, Cost, usize) {
     let e = ctx.elements;
     let (b, spread) = (&state.b, &state.spread);
     let leaves: Vec<u32> = e.leaves().collect();
     let n = (ctx.rays * ctx.rays) as f64;
     // Factors in `f32` unless the settings ask for more than its rounding ([`solve::List`]).
     let narrow = ctx.quadrature >= NARROW_QUADRATURE;
-    // Per leaf: its list, factor sum with bar, carried bar, and the work spent. Each list
-    // is made compact as soon as it is built, so that only the compact lists are held.
-    type Built = (solve::List, (f64, Bar), Bar, Cost);
+    // Per leaf: its list, factor sum with bar, carried bar, the work spent and its entries
+    // from cluster links. Each list is made compact as soon as it is built, so that only
+    // the compact lists are held.
+    type Built = (solve::List, (f64, Bar), Bar, Cost, usize);
     // Each run of leaves takes a cache of cluster points that earlier runs filled, so that
     // cutting the leaves into runs ([`PAR_RUN`]) does not redraw the shared upper nodes'.
     let caches = std::sync::Mutex::new(Vec::new());
@@ -1477,7 +1482,7 @@ pub fn gather_lists(
                 if e.buried[li] {
                     let (list, sum, carried) =
                         finish_list(e, li, &out, cluster, rho, state, narrow);
-                    return (list, sum, carried, cost);
+                    return (list, sum, carried, cost, 0);
                 }
                 let (eps, k) = rel.weights(b[li]);
                 // The source cut's tolerance: relative to the leaf's own radiosity down to
@@ -1823,7 +1828,7 @@ pub fn gather_lists(
                     cost.evals += evals;
                 }
                 let (list, sum, carried) = finish_list(e, li, &out, cluster, rho, state, narrow);
-                (list, sum, carried, cost)
+                (list, sum, carried, cost, cluster.len())
             },
         )
         .collect();
@@ -1833,14 +1838,15 @@ pub fn gather_lists(
         row_sum: Vec::with_capacity(per_leaf.len()),
         carried: Vec::with_capacity(per_leaf.len()),
     };
-    let mut cost = Cost::default();
-    for (list, sum, carried, c) in per_leaf {
+    let (mut cost, mut from_clusters) = (Cost::default(), 0);
+    for (list, sum, carried, c, k) in per_leaf {
         cost += c;
+        from_clusters += k;
         g.lists.push(list);
         g.row_sum.push(sum);
         g.carried.push(carried);
     }
-    (g, cost)
+    (g, cost, from_clusters)
 }
 
 /// How far the radiosity that leaf `l` gathers from source `s` through an unoccluded
