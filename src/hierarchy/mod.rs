@@ -151,8 +151,9 @@ pub struct Settings {
     /// than `quadrature` (set it tiny for factors to full precision everywhere).
     pub accuracy: f64,
     /// Share of the link tolerance that a link whose rays were all blocked may carry and
-    /// be kept unrefined, gathered by Russian roulette ([`link::Basis::Roulette`]), instead
-    /// of being refined.
+    /// be kept unrefined, instead of being refined: an element link gathered by Russian
+    /// roulette ([`link::Basis::Roulette`]), a cluster link estimated by rays of its own
+    /// ([`clusters`]).
     pub hide: f64,
     /// Share of the link tolerance above which the final gather replaces a split source
     /// by its children, and a cluster source by its sub-clusters ([`gather_lists`]).
