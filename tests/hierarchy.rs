@@ -792,10 +792,9 @@ fn clustered_and_unclustered_at_ten_thousand_triangles() {
         );
     }
     // Measured (docs/HIERARCHY.md, Clustering) at this test's settings, --error 0.01 and
-    // --link-rays 8 (2026-12-06, with the cluster bound by projected area): 1/34 of the
-    // initial links, objects within 0.17%, roots within 0.36% at the 99th percentile
-    // (worst 1.95%, one sphere face), leaf points 0.41%, output points 0.24% and every
-    // one within 3% (worst 2.38%). With the default
+    // --link-rays 8 (2026-12-06): 1/32 of the initial links, objects within 0.14%, roots
+    // within 0.35% at the 99th percentile (worst 2.40%, one sphere face), leaf points
+    // 0.41%, output points 0.24% and every one within 3% (worst 2.34%). With the default
     // 4 x 4 rays a link and the default split receivers and split shadows: at --error
     // 0.05, 1/55 of the initial links, objects within 0.17%, roots within 1.81% at the 99th percentile (0.80% before receivers and
     // shadows were split: single sphere faces, one leaf each, whose estimated errors are
