@@ -32,7 +32,7 @@ use crate::output::chart::{line_chart, Series};
 use crate::pipeline::{self, EstimatorChoice};
 use crate::scene::Scene;
 use crate::solve::{Method, Options};
-use crate::visibility::{self, Rays, Segments, Tracer, Visibility};
+use crate::visibility::{self, Rays, Segments, Tracer, Visibility, SEGMENT_TNEAR};
 
 /// The rays a form-factor stage casts, recorded.
 pub enum Recorded {
@@ -192,7 +192,7 @@ pub fn raw_loop(vis: &Visibility, rec: &Recorded) -> u64 {
             .par_chunks(4096)
             .map(|ch| {
                 ch.iter()
-                    .filter(|r| e.occluded1(r.0, r.1, 0.0, r.2))
+                    .filter(|r| e.occluded1(r.0, r.1, SEGMENT_TNEAR, r.2))
                     .count() as u64
             })
             .sum(),
@@ -225,7 +225,7 @@ pub fn raw_loop16(vis: &Visibility, rec: &Recorded) -> u64 {
                         let mut c = 0u64;
                         for p in ch.chunks(16) {
                             for (k, r) in p.iter().enumerate() {
-                                rays[k] = (r.0, r.1, 0.0, r.2);
+                                rays[k] = (r.0, r.1, SEGMENT_TNEAR, r.2);
                             }
                             e.occluded16(&rays[..p.len()], &mut out);
                             c += out[..p.len()].iter().filter(|&&o| o).count() as u64;

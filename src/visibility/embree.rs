@@ -425,21 +425,25 @@ impl EmbreeScene {
         ray.tfar < 0.0
     }
 
-    /// [`EmbreeScene::occluded16`] of segment rays `(origin, direction, tfar)` with
-    /// `tnear = 0`, filled straight into the packet.
+    /// [`EmbreeScene::occluded16`] of segment rays `(origin, direction, tfar)`, all from
+    /// `tnear`, filled straight into the packet.
     #[inline]
-    pub fn occluded16_segments(&self, rays: &[(Vec3, Vec3, f32)], out: &mut [bool]) {
-        self.occluded16_with(rays.len(), |k| (rays[k].0, rays[k].1, 0.0, rays[k].2), out);
+    pub fn occluded16_segments(&self, rays: &[(Vec3, Vec3, f32)], tnear: f32, out: &mut [bool]) {
+        self.occluded16_with(
+            rays.len(),
+            |k| (rays[k].0, rays[k].1, tnear, rays[k].2),
+            out,
+        );
     }
 
     /// `rtcOccluded16` over up to 16 segment rays given as structure of arrays: ray k
     /// starts at `(org[0][k], org[1][k], org[2][k])`, has direction `dir[.][k]` and runs
-    /// over `[0, tfar]`. The slices are copied into the packet whole (no transposition);
+    /// over `[tnear, tfar]`. The slices are copied into the packet whole (no transposition);
     /// `out[k]` is set to true when nothing blocks ray k (written once, as the answer: a
     /// second pass inverting a blocked flag read the 16 bytes back as one load right after
     /// their 16 one-byte stores, which the store buffer cannot forward).
     /// The packet `p` is reused: a full one has every per-ray field it reads written here
-    /// (origins, directions, `tfar`; occlusion changes nothing else), and a partial one is
+    /// (origins, directions, `tnear`, `tfar`; occlusion changes nothing else), and a partial one is
     /// made fresh first, so every query sees the packet a fresh one would be.
     #[inline(always)]
     pub fn free16_soa(
@@ -447,6 +451,7 @@ impl EmbreeScene {
         p: &mut SegmentPacket16,
         org: [&[f32]; 3],
         dir: [&[f32]; 3],
+        tnear: f32,
         tfar: f32,
         out: &mut [bool],
     ) {
@@ -459,6 +464,7 @@ impl EmbreeScene {
         let mut valid = Valid16([0i32; 16]);
         valid.0[..n].fill(-1);
         load_lanes(packet, org, dir);
+        packet.tnear[..n].fill(tnear);
         packet.tfar[..n].fill(tfar);
         if self.wide16 {
             // SAFETY: as in `occluded16_with`: committed scene, 64-byte aligned packet and
@@ -735,7 +741,14 @@ mod tests {
                 };
                 let (ox, oy, oz) = (col(|r| r.0.x), col(|r| r.0.y), col(|r| r.0.z));
                 let (dx, dy, dz) = (col(|r| r.1.x), col(|r| r.1.y), col(|r| r.1.z));
-                scene.free16_soa(&mut p, [&ox, &oy, &oz], [&dx, &dy, &dz], 1.0, &mut free);
+                scene.free16_soa(
+                    &mut p,
+                    [&ox, &oy, &oz],
+                    [&dx, &dy, &dz],
+                    0.0,
+                    1.0,
+                    &mut free,
+                );
                 for (k, r) in rays[..n].iter().enumerate() {
                     let single = scene.occluded1(r.0, r.1, r.2, r.3);
                     assert_eq!(out[k], single, "{w}, n = {n}, ray {k}");

@@ -16,7 +16,10 @@
 //! `floor`, a few `f32` rounding units at the scene's largest coordinate (so that an end
 //! rounded to `f32` stays off its surface); and the ray stops short of the far end (pbrt-v4
 //! `SpawnRayTo`; Embree does not promise what happens for hits exactly at
-//! `tnear`/`tfar`). Because both ends sit on the front side of their patches, a segment
+//! `tnear`/`tfar`), and starts a millionth of its length past its origin: an origin drawn
+//! within `f32` rounding of a concave edge, offset off its own face, can round onto the
+//! face across the edge, which Embree reports hit at `t = 0` (at most `1e-6` of the
+//! diagonal, a tenth of `eps`, is skipped). Because both ends sit on the front side of their patches, a segment
 //! never hits its own patches, and a point in a corner cannot leak through the wall it
 //! touches. An end closer than `floor` to the *other* end's plane (a point on the edge
 //! that its face shares with the other's) is also moved off that plane, to `floor`:
@@ -54,6 +57,10 @@ pub const OFFSET_REL: f32 = 1e-5;
 /// `tfar` of a segment ray: it stops this fraction of its length short of the far end.
 pub const SEGMENT_TFAR: f32 = 1.0 - 1e-4;
 
+/// `tnear` of a segment ray: it starts this fraction of its length past its origin
+/// (module docs), at most 0.1 of the offset `eps` in scene units.
+pub const SEGMENT_TNEAR: f32 = 1e-6;
+
 /// The ray-offset policy of the module docs, for a scene.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Offsets {
@@ -86,7 +93,7 @@ impl Offsets {
     }
 }
 
-/// A segment ray `(origin, direction, tfar)` with tnear = 0, as made by
+/// A segment ray `(origin, direction, tfar)` with tnear = [`SEGMENT_TNEAR`], as made by
 /// [`Visibility::segment_ray`].
 pub type SegmentRay = (Vec3, Vec3, f32);
 
@@ -139,7 +146,7 @@ impl<'a> Rays<'a> {
 
 /// Segment rays as structure of arrays: [`Rays`] whose directions run from the origin to
 /// the far end (offsets applied as in [`Visibility::segment_ray`], so not unit), each over
-/// `t` in `[0, tfar]`. This is the layout of Embree's packets, so a batch goes to
+/// `t` in `[SEGMENT_TNEAR, tfar]`. This is the layout of Embree's packets, so a batch goes to
 /// `rtcOccluded16` without being transposed.
 #[derive(Clone, Copy, Debug)]
 pub struct Segments<'a> {
@@ -371,7 +378,7 @@ impl Visibility {
 
     /// The segment from `x` (on a surface with unit normal `n_x`) to `y` (normal `n_y`),
     /// both ends offset off their surfaces toward the other end by the [`Offsets`]
-    /// policy, as an `f32` ray: `(origin, direction, tfar)` with tnear = 0. Computed in
+    /// policy, as an `f32` ray: `(origin, direction, tfar)` with tnear = [`SEGMENT_TNEAR`]. Computed in
     /// f64, rounded once. Direction is not normalised.
     #[inline]
     pub fn segment_ray(&self, x: DVec3, n_x: DVec3, y: DVec3, n_y: DVec3) -> SegmentRay {
@@ -390,7 +397,7 @@ impl Visibility {
     /// Visibility of up to 16 segments at once, with Embree's packet query.
     #[inline]
     pub fn segments_visible16(&self, segs: &[SegmentRay], out: &mut [bool]) {
-        self.scene.occluded16_segments(segs, out);
+        self.scene.occluded16_segments(segs, SEGMENT_TNEAR, out);
         for v in out[..segs.len()].iter_mut() {
             *v = !*v;
         }
@@ -410,7 +417,7 @@ impl Visibility {
                 self.segments_visible16(c, o);
             } else {
                 for (o, s) in o.iter_mut().zip(c) {
-                    *o = !self.scene.occluded1(s.0, s.1, 0.0, s.2);
+                    *o = !self.scene.occluded1(s.0, s.1, SEGMENT_TNEAR, s.2);
                 }
             }
         }
@@ -442,12 +449,13 @@ impl Visibility {
                 for ((org, dir), out) in segs.rays.packets16().zip(out[..n].chunks_mut(16)) {
                     let len = org[0].len();
                     if len >= self.short_packet_min(PACKET_MIN) {
-                        self.scene.free16_soa(&mut packet, org, dir, segs.tfar, out);
+                        self.scene
+                            .free16_soa(&mut packet, org, dir, SEGMENT_TNEAR, segs.tfar, out);
                     } else {
                         for (k, v) in out.iter_mut().enumerate().take(len) {
                             let o = Vec3::new(org[0][k], org[1][k], org[2][k]);
                             let d = Vec3::new(dir[0][k], dir[1][k], dir[2][k]);
-                            *v = !self.scene.occluded1(o, d, 0.0, segs.tfar);
+                            *v = !self.scene.occluded1(o, d, SEGMENT_TNEAR, segs.tfar);
                         }
                     }
                 }
@@ -772,6 +780,43 @@ f 1 2 3 4\nf 5 6 7 8\nf 9 10 11 12\nf 13 14 15\nf 16 17 18 19\n";
         vis.segments_visible(&segs, &mut free);
         let blocked: Vec<_> = segs.iter().zip(&free).filter(|(_, &f)| !f).collect();
         assert!(blocked.is_empty(), "blocked: {blocked:?}");
+    }
+
+    /// Inside the closed unit cube a segment from a point within `f32` rounding of a
+    /// concave edge to a point on a third face is free: the end, offset off its own face
+    /// and rounded to `f32`, may lie on the face across the edge, which a ray from there
+    /// must not count as hit at its start.
+    #[test]
+    fn segments_from_a_concave_edge_leave_the_face_across_it() {
+        let patches =
+            PatchSet::build(&Scene::load("cube").unwrap(), Resolution::Patches(6)).unwrap();
+        let vis = Visibility::new(&patches).unwrap();
+        // The wall x = 1 (normal -x) meets the ceiling y = 1 along x = y = 1; the far ends
+        // lie on the floor y = 0 (normal +y) and the wall x = 0 (normal +x).
+        let mut segs = Vec::new();
+        for delta in [0.0, 1e-12, 1e-9, 1e-8, 2e-8, 3e-8, 5e-8] {
+            for z in [0.1, 0.19, 0.5, 0.9] {
+                let x = DVec3::new(1.0, 1.0 - delta, z);
+                for (y, n_y) in [
+                    (DVec3::new(0.5, 0.0, 0.9), DVec3::Y),
+                    (DVec3::new(0.3, 0.0, z), DVec3::Y),
+                    (DVec3::new(0.0, 0.9, 0.2), DVec3::X),
+                    (DVec3::new(0.0, 0.2, 0.7), DVec3::X),
+                ] {
+                    segs.push(vis.segment_ray(x, DVec3::NEG_X, y, n_y));
+                    segs.push(vis.segment_ray(y, n_y, x, DVec3::NEG_X));
+                }
+            }
+        }
+        let mut free = vec![false; segs.len()];
+        vis.segments_visible(&segs, &mut free);
+        let mut one = vec![false; segs.len()];
+        for (k, s) in segs.iter().enumerate() {
+            vis.segments_visible(std::slice::from_ref(s), &mut one[k..k + 1]);
+        }
+        let blocked: Vec<_> = segs.iter().zip(&free).filter(|(_, &f)| !f).collect();
+        assert!(blocked.is_empty(), "blocked in packets: {blocked:?}");
+        assert!(one.iter().all(|&f| f), "blocked one at a time");
     }
 
     /// Every patch of both scenes, hit at 16 inner points from the front, obliquely, and
