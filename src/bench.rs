@@ -186,7 +186,7 @@ fn replay(ctx: &Context, choice: &EstimatorChoice, keep: bool) -> (Recorded, u64
 /// The raw Embree loop over recorded rays, one query per ray (`rtcOccluded1` or
 /// `rtcIntersect1`), in chunks over the current rayon pool. Returns a checksum.
 pub fn raw_loop(vis: &Visibility, rec: &Recorded) -> u64 {
-    let e = vis.raw();
+    let (e, tnear) = (vis.raw(), vis.offsets().floor);
     match rec {
         Recorded::Segments(v) => v
             .par_chunks(4096)
@@ -200,7 +200,7 @@ pub fn raw_loop(vis: &Visibility, rec: &Recorded) -> u64 {
             .par_chunks(4096)
             .map(|ch| {
                 ch.iter()
-                    .filter_map(|r| e.intersect1(r.0, r.1, 0.0, f32::INFINITY))
+                    .filter_map(|r| e.intersect1(r.0, r.1, tnear, f32::INFINITY))
                     .map(|h| h.prim as u64)
                     .sum::<u64>()
             })
@@ -211,7 +211,7 @@ pub fn raw_loop(vis: &Visibility, rec: &Recorded) -> u64 {
 /// The raw loop with 16-ray packets over consecutive recorded rays: `rtcOccluded16` for
 /// segments, `rtcIntersect16` for closest-hit rays. Returns a checksum.
 pub fn raw_loop16(vis: &Visibility, rec: &Recorded) -> u64 {
-    let e = vis.raw();
+    let (e, tnear) = (vis.raw(), vis.offsets().floor);
     match rec {
         // The copies into packets at the sampling passes' width, as in the stage.
         Recorded::Segments(v) => v
@@ -260,6 +260,7 @@ pub fn raw_loop16(vis: &Visibility, rec: &Recorded) -> u64 {
                                 &mut packet,
                                 [&ox[..n], &oy[..n], &oz[..n]],
                                 [&dx[..n], &dy[..n], &dz[..n]],
+                                tnear,
                                 &mut out,
                                 &mut against,
                             );

@@ -186,6 +186,10 @@ struct StudyBakesArgs {
     /// the leaf's view weights otherwise than its area (see `bake --kernel-cut`).
     #[arg(long, default_value_t = radiosity::hierarchy::KERNEL_CUT)]
     kernel_cut: f64,
+    /// Share of a leaf's tolerance its final gather's visibility noise may reach (see
+    /// `bake --gather-noise`).
+    #[arg(long, default_value_t = f64::INFINITY)]
+    gather_noise: f64,
     /// Split receivers whose shadows vary across them by more than the tolerance (see
     /// `bake --split-shadows`).
     #[arg(long, value_enum, default_value_t = if radiosity::hierarchy::SPLIT_SHADOWS { Switch::On } else { Switch::Off })]
@@ -425,6 +429,12 @@ struct HierarchyArgs {
     /// own view of a cluster*).
     #[arg(long, default_value_t = radiosity::hierarchy::CLUSTER_SIGHT_SHARE)]
     cluster_sight: f64,
+    /// Hierarchical: share of a leaf's tolerance that the visibility noise of its element
+    /// entries may reach (one standard error) in the final gather; the loudest are traced
+    /// again with up to 32 x 32 rays each. inf (the default): off (docs/HIERARCHY.md, *The
+    /// gather's visibility noise*).
+    #[arg(long, default_value_t = f64::INFINITY)]
+    gather_noise: f64,
     /// Hierarchical: cap on refine-and-solve passes.
     #[arg(long, default_value_t = 8)]
     max_passes: usize,
@@ -936,6 +946,7 @@ fn bake(args: &BakeArgs, method: MethodArg, auto: bool, cluster: &dyn Cluster) -
                 descend_low: args.hier.descend_low,
                 kernel_cut: args.hier.kernel_cut,
                 cluster_sight: args.hier.cluster_sight,
+                gather_noise: args.hier.gather_noise,
                 split_shadows: args.hier.split_shadows == Switch::On,
                 max_memory: args.est.max_memory,
                 ..Default::default()
@@ -1073,6 +1084,7 @@ fn study_bakes(args: &StudyBakesArgs) -> Result<()> {
         rays: args.link_rays,
         relative: (args.relative_low, args.relative_high),
         descend: (args.descend, args.descend_low, args.kernel_cut),
+        gather_noise: args.gather_noise,
         split_shadows: args.split_shadows == Switch::On,
         seed: args.seed,
         ..bakes::Settings::full(args.output.clone())

@@ -514,6 +514,9 @@ pub fn visible_fraction_partly(ctx: &Context, r: u32, s: u32, n: usize, open: Op
 /// Stream tag of [`visible_fraction_again`].
 const AGAIN: u64 = 1 << 40;
 
+/// Stream tag of [`traced_more`] (with the rays per side in the low bits).
+const MORE: u64 = 1 << 41;
+
 /// [`visible_fraction`] with rays independent of those that evaluated the link `r ← s`
 /// ([`evaluate`]): a fresh estimate for a link whose first estimate took part in deciding
 /// that it is kept.
@@ -560,6 +563,13 @@ pub fn traced(ctx: &Context, r: u32, s: u32, open: Option<f64>, partly: bool) ->
 pub fn traced_n(ctx: &Context, r: u32, s: u32, n: usize, open: Option<f64>) -> Traced {
     let tag = if n == ctx.rays { 0 } else { n as u64 };
     traced_keyed(ctx, r, s, n, tag, open, false)
+}
+
+/// `n × n` rays from `r` to `s` from a stream of their own, independent of every other
+/// estimate of the pair's visibility (the link's, the leaf's first, its pieces'): a
+/// second estimate that replaces a first whose noise asked for it stays unbiased.
+pub fn traced_more(ctx: &Context, r: u32, s: u32, n: usize, open: Option<f64>) -> Traced {
+    traced_keyed(ctx, r, s, n, MORE | n as u64, open, false)
 }
 
 /// The rays of [`visible_fraction_again`], kept.

@@ -186,6 +186,14 @@ pub struct Settings {
     /// own view of the others' sources ([`CLUSTER_SIGHT_SHARE`], the default). Infinite:
     /// every leaf takes every cluster link's fraction.
     pub cluster_sight: f64,
+    /// Share of a leaf's tolerance that the visibility noise of its element entries may
+    /// reach, at one standard error, in the final gather (`--gather-noise`): where the
+    /// entries' standard errors, weighted by what each source sends, add up (in
+    /// quadrature) to more, the loudest entries are traced again from the leaf with more
+    /// rays ([`GATHER_NOISE_RAYS`]), each once, from a stream of its own, and the new
+    /// estimate replaces the first. Infinite (the default): no entry is traced again.
+    /// docs/HIERARCHY.md, *The gather's visibility noise*.
+    pub gather_noise: f64,
     /// Per-element relative change at which the solve stops.
     pub tolerance: f64,
     /// Iteration cap of each solve.
@@ -256,6 +264,7 @@ impl Default for Settings {
             descend_low: DESCEND_LOW,
             kernel_cut: KERNEL_CUT,
             cluster_sight: CLUSTER_SIGHT_SHARE,
+            gather_noise: f64::INFINITY,
             tolerance: 1e-7,
             max_iterations: 10_000,
             max_passes: 8,
@@ -330,6 +339,12 @@ impl Settings {
             return bad(format!(
                 "--cluster-sight must be a number >= 0 (or inf), got {}",
                 self.cluster_sight
+            ));
+        }
+        if self.gather_noise.is_nan() || self.gather_noise <= 0.0 {
+            return bad(format!(
+                "--gather-noise must be a positive number (or inf), got {}",
+                self.gather_noise
             ));
         }
         if !(self.kernel_cut >= 0.0 && self.kernel_cut.is_finite()) {
@@ -693,6 +708,7 @@ pub fn run(
                 rel,
                 s.accuracy,
                 (s.descend, s.descend_low, s.kernel_cut),
+                s.gather_noise,
             );
             gather_seconds = t1.elapsed().as_secs_f64();
             report.evals += cost.evals;
@@ -1438,8 +1454,10 @@ fn stands_for(k: &Link, l: u32, seed: u64) -> Option<f64> {
 /// radiosity from their area mean by more than `kernel` times that tolerance
 /// ([`Settings::kernel_cut`], `kernel_weighting_error`).
 ///
-/// Factors are integrated to `accuracy × ε_l / (ρ_l B_s)` (as in `tolerances`). Returns
-/// the lists, the work spent and how many of the entries came from cluster links.
+/// Factors are integrated to `accuracy × ε_l / (ρ_l B_s)` (as in `tolerances`). With a
+/// finite `noise` ([`Settings::gather_noise`]) the loudest noisy entries are traced again
+/// ([`more_rays`]). Returns the lists, the work spent and how many of the entries came
+/// from cluster links.
 #[allow(clippy::too_many_arguments)]
 pub fn gather_lists(
     ctx: &Context,
@@ -1450,6 +1468,7 @@ pub fn gather_lists(
     rel: Relative,
     accuracy: f64,
     (descend, descend_low, kernel): (f64, f64, f64),
+    noise: f64,
 ) -> (Gather, Cost, usize) {
     let e = ctx.elements;
     let (b, spread) = (&state.b, &state.spread);
@@ -1717,6 +1736,7 @@ pub fn gather_lists(
                 // entries cut. A mostly hidden source is cut less: on the Cornell box this
                 // saved 7 M of 57 M rays for the same face averages.
                 let hidden_floor = 3.0 / n;
+                let mut again: Vec<Again> = Vec::new();
                 while let Some(en) = stack.pop() {
                     let s = en.src;
                     let seen = en.open * en.prior.clamp(0.0, 1.0).max(hidden_floor);
@@ -1739,6 +1759,14 @@ pub fn gather_lists(
                         } else {
                             f.abs() * en.v_bar
                         };
+                        if noise.is_finite() && !partly && en.count == 1.0 && en.v_bar > 0.0 {
+                            again.push(Again {
+                                at: out.len(),
+                                open: en.open,
+                                v: en.v,
+                                prior: en.prior,
+                            });
+                        }
                         out.push((s, f, en.q_bar * en.count / exposed, se));
                         continue;
                     }
@@ -1806,6 +1834,26 @@ pub fn gather_lists(
                         }
                     }
                 }
+                if !again.is_empty() {
+                    let weights: Vec<f64> = again.iter().map(|a| weight(out[a.at].0, b)).collect();
+                    for (a, m) in again
+                        .iter()
+                        .zip(more_rays(&again, &weights, &out, noise * eps))
+                    {
+                        let Some(m) = m else { continue };
+                        let (s, _, q_bar, _) = out[a.at];
+                        let t = link::traced_more(ctx, l, s, m, Some(a.open));
+                        let seen = t.seen_around(a.prior);
+                        cost.rays += seen.rays;
+                        let v = seen.v;
+                        let q = if a.v != 0.0 {
+                            q_bar * (v / a.v).abs()
+                        } else {
+                            q_bar
+                        };
+                        out[a.at] = (s, a.open * v, q, a.open * fraction_se(v, (m * m) as f64));
+                    }
+                }
                 if let Some(x) = extra {
                     // A cluster link's visible fraction is its pair's, not the leaf's: the
                     // leaf checks its own view of the loudest links' sources until what
@@ -1848,6 +1896,73 @@ pub fn gather_lists(
         g.carried.push(carried);
     }
     (g, cost, from_clusters)
+}
+
+/// Largest rays per side with which a leaf traces an entry again to bring its gather's
+/// visibility noise within [`Settings::gather_noise`] (`GATHER_NOISE_RAYS²` rays).
+pub const GATHER_NOISE_RAYS: usize = 32;
+
+/// An element entry of a leaf's gather list that may be traced again ([`more_rays`]): its
+/// place in the list, its unoccluded factor, its estimated visible fraction and the prior
+/// that estimate was made around.
+struct Again {
+    at: usize,
+    open: f64,
+    v: f64,
+    prior: f64,
+}
+
+/// Which of a leaf's entries `again` (with `weights`, what a unit of each entry's factor
+/// moves the leaf's radiosity by, and `out`, the list holding their factors and standard
+/// errors) are traced again, with how many rays per side, so that the entries' standard
+/// errors weighted and added in quadrature fall within `target`: the loudest first, each
+/// taken to the next of 4, 8, 16 and 32 rays per side that its own estimate says would
+/// lower it (the binomial bar at its estimated fraction), until the projected sum is
+/// within `target` or every entry is at [`GATHER_NOISE_RAYS`]. The choice reads only the
+/// first estimates, and each chosen entry is traced once, from a stream of its own
+/// ([`link::traced_more`]): the estimate that replaces it is independent of the choice,
+/// so unbiased.
+fn more_rays(
+    again: &[Again],
+    weights: &[f64],
+    out: &[(u32, f64, f64, f64)],
+    target: f64,
+) -> Vec<Option<usize>> {
+    let mut chosen = vec![None; again.len()];
+    let mut var: Vec<f64> = again
+        .iter()
+        .zip(weights)
+        .map(|(a, &w)| (w * out[a.at].3).powi(2))
+        .collect();
+    let mut total: f64 = var.iter().sum();
+    let projected = |a: &Again, w: f64, m: usize| {
+        let p = a.v.clamp(0.0, 1.0);
+        (w * a.open * fraction_se(p, (m * m) as f64)).powi(2)
+    };
+    while total > target * target {
+        // The loudest entry that more rays would still quiet.
+        let mut best: Option<(usize, usize, f64)> = None;
+        for (i, (a, &w)) in again.iter().zip(weights).enumerate() {
+            if var[i] <= 0.0 || best.is_some_and(|(_, _, v)| var[i] <= v) {
+                continue;
+            }
+            let from: usize = chosen[i].map_or(4, |m: usize| 2 * m);
+            let next = (0..)
+                .map(|k| from << k)
+                .take_while(|&m| m <= GATHER_NOISE_RAYS)
+                .find(|&m| projected(a, w, m) < var[i]);
+            if let Some(m) = next {
+                best = Some((i, m, var[i]));
+            }
+        }
+        let Some((i, m, _)) = best else { break };
+        let (a, w) = (&again[i], weights[i]);
+        let v = projected(a, w, m);
+        total += v - var[i];
+        var[i] = v;
+        chosen[i] = Some(m);
+    }
+    chosen
 }
 
 /// How far the radiosity that leaf `l` gathers from source `s` through an unoccluded
@@ -2218,6 +2333,50 @@ mod tests {
     /// A check casts `2 × 2` rays for a dim source, the fewest whose all-free bar times the
     /// entry's weight is within its share of the tolerance for a bright one, and no more
     /// than the cap.
+    /// The gather's noise allocation takes the loudest entries first, to the fewest rays
+    /// that bring the projected sum within the target, leaves quiet lists alone, and stops
+    /// at the cap where the target cannot be met.
+    #[test]
+    fn more_rays_quiets_the_loudest_entries_first() {
+        let entry = |at: usize, open: f64, v: f64| Again {
+            at,
+            open,
+            v,
+            prior: v,
+        };
+        // Three entries of 8 x 8 rays: a bright source 1% hidden, a dim one half hidden,
+        // a bright one seen whole.
+        let again = [entry(0, 0.2, 0.99), entry(1, 0.05, 0.5), entry(2, 0.3, 1.0)];
+        let weights = [1.0, 0.1, 1.0];
+        let out: Vec<(u32, f64, f64, f64)> = again
+            .iter()
+            .map(|a| (0, a.open * a.v, 0.0, a.open * fraction_se(a.v, 64.0)))
+            .collect();
+        let sd = |chosen: &[Option<usize>]| {
+            again
+                .iter()
+                .zip(&weights)
+                .zip(chosen)
+                .map(|((a, &w), m)| match m {
+                    Some(m) => (w * a.open * fraction_se(a.v, (m * m) as f64)).powi(2),
+                    None => (w * out[a.at].3).powi(2),
+                })
+                .sum::<f64>()
+                .sqrt()
+        };
+        let first = sd(&[None, None, None]);
+        assert!(more_rays(&again, &weights, &out, 1.01 * first)
+            .iter()
+            .all(Option::is_none));
+        let half = more_rays(&again, &weights, &out, 0.5 * first);
+        assert!(sd(&half) <= 0.5 * first, "{half:?}");
+        // The dim source is the quietest: left alone while the bright ones meet the target.
+        assert_eq!(half[1], None, "{half:?}");
+        assert!(half[0].is_some() || half[2].is_some(), "{half:?}");
+        let all = more_rays(&again, &weights, &out, 1e-9);
+        assert!(all.iter().all(|&m| m == Some(GATHER_NOISE_RAYS)), "{all:?}");
+    }
+
     #[test]
     fn a_brighter_source_is_checked_with_more_rays() {
         let bar = |m: usize| fraction_se(1.0, (m * m) as f64);

@@ -275,6 +275,9 @@ pub struct Settings {
     /// share for the leaf's view of the children ([`hierarchy::Settings::descend`],
     /// [`hierarchy::Settings::descend_low`], [`hierarchy::Settings::kernel_cut`]).
     pub descend: (f64, f64, f64),
+    /// Share of a leaf's tolerance its gather's visibility noise may reach
+    /// ([`hierarchy::Settings::gather_noise`]).
+    pub gather_noise: f64,
     /// Split receivers whose shadows vary across them by more than the tolerance
     /// ([`hierarchy::Settings::split_shadows`]).
     pub split_shadows: bool,
@@ -299,6 +302,7 @@ impl Settings {
                 hierarchy::DESCEND_LOW,
                 hierarchy::KERNEL_CUT,
             ),
+            gather_noise: f64::INFINITY,
             split_shadows: hierarchy::SPLIT_SHADOWS,
             seed: hierarchy::Settings::default().seed,
             out,
@@ -357,6 +361,7 @@ pub fn run(s: &Settings) -> Result<(Vec<Run>, Vec<Probe>)> {
             descend: s.descend.0,
             descend_low: s.descend.1,
             kernel_cut: s.descend.2,
+            gather_noise: s.gather_noise,
             split_shadows: s.split_shadows,
             seed: s.seed,
             ..Default::default()

@@ -234,7 +234,7 @@ struct PaddedRayHit16 {
 pub struct HitPacket16(PaddedRayHit16);
 
 impl HitPacket16 {
-    /// A packet with the fields no query changes set: `tnear = 0`, `time = 0`, all mask
+    /// A packet with the fields no query changes set: `time = 0`, all mask
     /// bits, `id = flags = 0`.
     pub fn new() -> HitPacket16 {
         let mut p = PaddedRayHit16 {
@@ -528,7 +528,7 @@ impl EmbreeScene {
 
     /// Closest hits of up to 16 rays at once (`rtcIntersect16`), given as structure of
     /// arrays (ray k from `(org[0][k], org[1][k], org[2][k])` along `dir[.][k]`, over
-    /// `[0, inf)`) and traced in the reusable packet `p`: `out[k]` is the triangle ray k
+    /// `[tnear, inf)`) and traced in the reusable packet `p`: `out[k]` is the triangle ray k
     /// hits first, or `u32::MAX`, and `against[k]` is true when the ray meets that
     /// triangle against its winding normal `(v1 - v0) x (v2 - v0)` (from the side the
     /// normal points to). Full packets are copied in whole; only the fields a query
@@ -539,6 +539,7 @@ impl EmbreeScene {
         p: &mut HitPacket16,
         org: [&[f32]; 3],
         dir: [&[f32]; 3],
+        tnear: f32,
         out: &mut [u32],
         against: &mut [bool],
     ) {
@@ -549,6 +550,7 @@ impl EmbreeScene {
         let rh = &mut p.0.rayhit;
         let r = &mut rh.ray;
         load_lanes(r, org, dir);
+        r.tnear = [tnear; 16];
         r.tfar = [f32::INFINITY; 16];
         rh.hit.geomID = [sys::RTC_INVALID_GEOMETRY_ID; 16];
         // SAFETY: the scene is committed; the ray-hit packet and the mask are 64-byte
@@ -802,6 +804,7 @@ mod tests {
                 &mut p,
                 [&ox, &oy, &oz],
                 [&dx, &dy, &dz],
+                0.0,
                 &mut out,
                 &mut against,
             );
@@ -835,6 +838,7 @@ mod tests {
             &mut p,
             [&[0.2], &[0.3], &[-0.5]],
             [&[0.0], &[0.0], &[1.0]],
+            0.0,
             &mut out,
             &mut against,
         );

@@ -24,7 +24,8 @@
 //! touches. An end closer than `floor` to the *other* end's plane (a point on the edge
 //! that its face shares with the other's) is also moved off that plane, to `floor`:
 //! rounded onto it, the segment would run inside the other face and hit it. Both bounds scale with the scene, so a scaled copy casts the same rays, scaled.
-//! Closest-hit rays leave from `eps` off their surface.
+//! Closest-hit rays leave from `eps` off their surface and count hits from `floor` on (for
+//! the same reason: an origin rounded onto the face across a concave edge).
 //!
 //! What Embree holds is the scene's faces, not its patches: a planar face of the patch
 //! set's grids ([`crate::mesh::FaceGrid`]) goes in whole, as its own one or two
@@ -489,8 +490,14 @@ impl Visibility {
             #[inline(always)]
             || {
                 for ((org, dir), out) in rays.packets16().zip(out[..n].chunks_mut(16)) {
-                    self.scene
-                        .intersect16_soa(&mut packet, org, dir, out, &mut against);
+                    self.scene.intersect16_soa(
+                        &mut packet,
+                        org,
+                        dir,
+                        self.offsets.floor,
+                        out,
+                        &mut against,
+                    );
                     for (k, (v, &a)) in out.iter_mut().zip(&against).enumerate() {
                         if *v != u32::MAX {
                             let (u, w) = packet.uv(k);
@@ -509,7 +516,7 @@ impl Visibility {
     pub fn first_hit(&self, x: DVec3, n_x: DVec3, dir: DVec3) -> Option<Hit> {
         let org = self.first_hit_origin(x, n_x, dir);
         self.scene
-            .intersect1(org, dir.as_vec3(), 0.0, f32::INFINITY)
+            .intersect1(org, dir.as_vec3(), self.offsets.floor, f32::INFINITY)
             .map(|h| {
                 let (front, back, along) = self.sides(h.prim, h.u, h.v);
                 // Meeting the back of a two-sided face is meeting the front of its twin.
@@ -817,6 +824,44 @@ f 1 2 3 4\nf 5 6 7 8\nf 9 10 11 12\nf 13 14 15\nf 16 17 18 19\n";
         let blocked: Vec<_> = segs.iter().zip(&free).filter(|(_, &f)| !f).collect();
         assert!(blocked.is_empty(), "blocked in packets: {blocked:?}");
         assert!(one.iter().all(|&f| f), "blocked one at a time");
+    }
+
+    /// Closest-hit rays from a point within `f32` rounding of the cube's concave edge,
+    /// into the room, meet the face they are aimed at, not the face across the edge
+    /// (from its back, as nothing) at their start: one ray at a time and in packets.
+    #[test]
+    fn closest_hits_from_a_concave_edge_leave_the_face_across_it() {
+        let patches =
+            PatchSet::build(&Scene::load("cube").unwrap(), Resolution::Patches(6)).unwrap();
+        let vis = Visibility::new(&patches).unwrap();
+        let floor = (0..patches.len())
+            .find(|&p| patches.centroid[p].y < 1e-9)
+            .unwrap() as u32;
+        let (mut org, mut dir) = (Vec::new(), Vec::new());
+        for delta in [0.0, 1e-12, 1e-9, 1e-8, 3e-8, 5e-8] {
+            for z in [0.1, 0.19, 0.5, 0.9] {
+                let x = DVec3::new(1.0, 1.0 - delta, z);
+                for aim in [DVec3::new(0.5, 0.0, 0.9), DVec3::new(0.3, 0.0, z)] {
+                    let d = (aim - x).normalize();
+                    let hit = vis.first_hit(x, DVec3::NEG_X, d).map(|h| h.patch);
+                    assert_eq!(hit, Some(floor), "from {x} toward {aim}");
+                    org.push(vis.first_hit_origin(x, DVec3::NEG_X, d));
+                    dir.push(d.as_vec3());
+                }
+            }
+        }
+        let col = |a: &[Vec3], c: usize| a.iter().map(|p| p[c]).collect::<Vec<f32>>();
+        let (o, d) = (
+            [col(&org, 0), col(&org, 1), col(&org, 2)],
+            [col(&dir, 0), col(&dir, 1), col(&dir, 2)],
+        );
+        let rays = Rays {
+            org: [&o[0], &o[1], &o[2]],
+            dir: [&d[0], &d[1], &d[2]],
+        };
+        let mut out = vec![0; org.len()];
+        vis.first_front_hits_soa(&rays, &mut out);
+        assert!(out.iter().all(|&p| p == floor), "{out:?}");
     }
 
     /// Every patch of both scenes, hit at 16 inner points from the front, obliquely, and
