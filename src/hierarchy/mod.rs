@@ -1456,7 +1456,7 @@ fn stands_for(k: &Link, l: u32, seed: u64) -> Option<f64> {
 ///
 /// Factors are integrated to `accuracy × ε_l / (ρ_l B_s)` (as in `tolerances`). With a
 /// finite `noise` ([`Settings::gather_noise`]) the loudest noisy entries are traced again
-/// ([`more_rays`]). Returns the lists, the work spent and how many of the entries came
+/// (`more_rays`). Returns the lists, the work spent and how many of the entries came
 /// from cluster links.
 #[allow(clippy::too_many_arguments)]
 pub fn gather_lists(
