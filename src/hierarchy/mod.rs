@@ -2330,9 +2330,6 @@ mod tests {
     use crate::formfactor::exact::Piece;
     use glam::DVec3;
 
-    /// A check casts `2 × 2` rays for a dim source, the fewest whose all-free bar times the
-    /// entry's weight is within its share of the tolerance for a bright one, and no more
-    /// than the cap.
     /// The gather's noise allocation takes the loudest entries first, to the fewest rays
     /// that bring the projected sum within the target, leaves quiet lists alone, and stops
     /// at the cap where the target cannot be met.
@@ -2377,6 +2374,9 @@ mod tests {
         assert!(all.iter().all(|&m| m == Some(GATHER_NOISE_RAYS)), "{all:?}");
     }
 
+    /// A check casts `2 × 2` rays for a dim source, the fewest whose all-free bar times the
+    /// entry's weight is within its share of the tolerance for a bright one, and no more
+    /// than the cap.
     #[test]
     fn a_brighter_source_is_checked_with_more_rays() {
         let bar = |m: usize| fraction_se(1.0, (m * m) as f64);
