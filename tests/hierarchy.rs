@@ -163,11 +163,17 @@ fn shelf_settings() -> Settings {
 #[test]
 fn shelf_table_on_the_hierarchy() {
     let rows = shelf_rows(&shelf_settings()).1;
-    for (row, (got, (_, _, want))) in rows.iter().zip(crate::shelf::TABLE.iter()).enumerate() {
+    let table: Vec<[f64; 3]> = crate::shelf::TABLE.iter().map(|r| r.2).collect();
+    assert_rows_within(&rows, &table, 1e-4, "the notes give");
+}
+
+/// Each shelf's middle radiosity in `got` within `tol` of `want`, row by row.
+fn assert_rows_within(got: &[[f64; 3]], want: &[[f64; 3]], tol: f64, against: &str) {
+    for (row, (got, want)) in got.iter().zip(want).enumerate() {
         for (k, name) in ["A", "B", "C"].iter().enumerate() {
             assert!(
-                (got[k] - want[k]).abs() <= 1e-4,
-                "row {}: B_{name} = {:.6}, the notes give {:.5}",
+                (got[k] - want[k]).abs() <= tol,
+                "row {}: B_{name} = {:.6}, {against} {:.6}",
                 row + 1,
                 got[k],
                 want[k]
@@ -180,10 +186,10 @@ fn shelf_table_on_the_hierarchy() {
 /// link tolerance at 0.003: distant parts of the shelves exchange light through cluster
 /// links (282 to 342 a row, measured), and the middle slice stays within 3e-5 of the same
 /// shelf solved without clusters (measured: worst 1.8e-5, row 4's `B_C`, 0.328418 against
-/// 0.328436; at the default tolerance 0.01 the worst is 3.2e-5, row 4's `B_B`). The comparison is with the
-/// unclustered solution rather than the table because the finite shelf itself sits 9.4e-5
-/// below the table's row 4 `B_C` (0.32853), which leaves a table check at 1e-4 no room to
-/// tell a cluster's error from the shelf's length.
+/// 0.328436; at the default tolerance 0.01 the worst is 3.2e-5, row 4's `B_B`). The
+/// comparison is with the unclustered solution rather than the table because the finite
+/// shelf itself sits 9.4e-5 below the table's row 4 `B_C` (0.32853), which leaves a table
+/// check at 1e-4 no room to tell a cluster's error from the shelf's length.
 #[test]
 fn shelf_table_with_clusters() {
     let (_, plain) = shelf_rows(&shelf_settings());
@@ -195,17 +201,7 @@ fn shelf_table_with_clusters() {
     });
     eprintln!("cluster links per row: {cluster_links:?}");
     assert!(cluster_links.iter().all(|&n| n > 0), "{cluster_links:?}");
-    for (row, (got, plain)) in got.iter().zip(&plain).enumerate() {
-        for (k, name) in ["A", "B", "C"].iter().enumerate() {
-            assert!(
-                (got[k] - plain[k]).abs() <= 3e-5,
-                "row {}: B_{name} = {:.6} with clusters, {:.6} without",
-                row + 1,
-                got[k],
-                plain[k]
-            );
-        }
-    }
+    assert_rows_within(&got, &plain, 3e-5, "with clusters; without");
 }
 
 /// Bakes every row of the notes' shelf table with settings `s` (no element split);
