@@ -17,7 +17,7 @@
 //! [`PatchSampler::point`]); `f32` appears only where rays are made for Embree
 //! ([`PatchSampler::point32`] and the visibility module).
 
-use glam::{DVec3, Vec3};
+use glam::{DVec2, DVec3, Vec3};
 
 use crate::error::{Error, Result};
 use crate::scene::{Face, Material, Scene};
@@ -120,6 +120,34 @@ pub enum Layout {
         /// The face whose back this is.
         front: u32,
     },
+}
+
+/// The parameters `(s, t)` of the point `x` under the bilinear map of [`Layout::Quad`] of a
+/// planar quad, written in 2D coordinates of its plane with `p0` at the origin: `x = e s +
+/// f t + g s t`, `e = p1 - p0`, `f = p3 - p0`, `g = p2 - p1 - p3 + p0`. Crossing the
+/// equation with `f + g s` removes `t` and leaves `(e × g) s² + (e × f - x × g) s - x × f
+/// = 0` (2D cross products; Quilez, "Inverse bilinear interpolation", 2010), whose root
+/// nearest the unit square is taken in the cancellation-free form; then `t` by projection
+/// onto `f + g s`. Not clamped: a point outside the quad gets parameters outside `[0, 1]`
+/// (non-finite ones only for a degenerate quad).
+pub fn inverse_bilinear(e: DVec2, f: DVec2, g: DVec2, x: DVec2) -> (f64, f64) {
+    let (a, b, c) = (e.perp_dot(g), e.perp_dot(f) - x.perp_dot(g), -x.perp_dot(f));
+    let s = if a.abs() <= 1e-12 * b.abs() {
+        -c / b
+    } else {
+        let root = (b * b - 4.0 * a * c).max(0.0).sqrt();
+        let w = -0.5 * (b + root.copysign(b));
+        let (r1, r2) = (w / a, c / w);
+        let off = |r: f64| (r - r.clamp(0.0, 1.0)).abs();
+        if off(r1) <= off(r2) || !r2.is_finite() {
+            r1
+        } else {
+            r2
+        }
+    };
+    let d = f + g * s;
+    let t = (x - e * s).dot(d) / d.length_squared();
+    (s, t)
 }
 
 impl PatchSet {
@@ -666,6 +694,34 @@ fn edge_for_count(scene: &Scene, n: usize) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The inverse bilinear map undoes the bilinear one on a trapezoid and on a kite.
+    #[test]
+    fn inverse_bilinear_undoes_the_map() {
+        for q in [
+            [
+                DVec2::new(2.0, 0.0),
+                DVec2::new(1.5, 1.0),
+                DVec2::new(0.5, 1.0),
+            ],
+            [
+                DVec2::new(1.0, -0.2),
+                DVec2::new(1.7, 1.1),
+                DVec2::new(0.1, 0.9),
+            ],
+        ] {
+            let (e, f) = (q[0], q[2]);
+            for k in 0..121 {
+                let (s, t) = (0.1 * (k % 11) as f64, 0.1 * (k / 11) as f64);
+                let x = q[0] * (s * (1.0 - t)) + q[1] * (s * t) + q[2] * ((1.0 - s) * t);
+                let (s2, t2) = inverse_bilinear(e, f, q[1] - e - f, x);
+                assert!(
+                    (s2 - s).abs() < 1e-12 && (t2 - t).abs() < 1e-12,
+                    "{s} {t}: {s2} {t2}"
+                );
+            }
+        }
+    }
     use crate::scene::builtin;
 
     #[test]

@@ -164,7 +164,7 @@ pub fn face_uv(scene: &Scene, f: &Face, x: DVec3) -> DVec2 {
         let [a, b, c] = barycentric(p[0], p[1], p[2], x);
         t[0] * a + t[1] * b + t[2] * c
     } else {
-        let (s, r) = inverse_bilinear(&p, x);
+        let (s, r) = quad_parameters(&p, x);
         t[0] * ((1.0 - s) * (1.0 - r))
             + t[1] * (s * (1.0 - r))
             + t[2] * (s * r)
@@ -186,14 +186,10 @@ fn barycentric(a: DVec3, b: DVec3, c: DVec3, x: DVec3) -> [f64; 3] {
     [1.0 - v - w, v, w]
 }
 
-/// The parameters `(s, t)` in the unit square of the point `x` of the quad `p` under the
-/// bilinear map `p0 (1-s)(1-t) + p1 s (1-t) + p2 s t + p3 (1-s) t` (the patch mesher's),
-/// solved in the quad's plane (Newell normal): `t` from the quadratic
-/// `(g x f) t^2 + (e x f + h x g) t + h x e = 0` with `e = p1 - p0`, `f = p3 - p0`,
-/// `g = p0 - p1 + p2 - p3`, `h = x - p0` (2D cross products; Quilez, "Inverse bilinear
-/// interpolation", 2010), its root in [0, 1] taken in the cancellation-free form, then
-/// `s` from the better-conditioned coordinate.
-fn inverse_bilinear(p: &[DVec3], x: DVec3) -> (f64, f64) {
+/// The parameters `(s, t)`, clamped into the unit square, of the point `x` of the quad `p`
+/// under the patch mesher's bilinear map ([`crate::mesh::inverse_bilinear`]), solved in the
+/// quad's plane (Newell normal) in units of its longer diagonal.
+fn quad_parameters(p: &[DVec3], x: DVec3) -> (f64, f64) {
     let n = crate::scene::polygon::newell(p).normalize_or_zero();
     let a1 = n.any_orthonormal_vector();
     let a2 = n.cross(a1);
@@ -203,44 +199,15 @@ fn inverse_bilinear(p: &[DVec3], x: DVec3) -> (f64, f64) {
     }
     let flat = |q: DVec3| DVec2::new((q - p[0]).dot(a1), (q - p[0]).dot(a2)) / scale;
     let (e, f) = (flat(p[1]), flat(p[3]));
-    let g = flat(p[0]) - flat(p[1]) + flat(p[2]) - flat(p[3]);
-    let h = flat(x);
-    let cross = |u: DVec2, v: DVec2| u.x * v.y - u.y * v.x;
-    let k2 = cross(g, f);
-    let k1 = cross(e, f) + cross(h, g);
-    let k0 = cross(h, e);
-    let in_range = |t: f64| t.is_finite() && (-1e-6..=1.0 + 1e-6).contains(&t);
-    let t = if k2.abs() <= 1e-12 * k1.abs() {
-        -k0 / k1
-    } else {
-        let disc = (k1 * k1 - 4.0 * k0 * k2).max(0.0).sqrt();
-        let q = -0.5 * (k1 + k1.signum() * disc);
-        let (r1, r2) = (q / k2, k0 / q);
-        if in_range(r2) {
-            r2
-        } else {
-            r1
-        }
-    };
-    let t = if t.is_finite() {
-        t.clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    let den = e + g * t;
-    let s = if den.x.abs() >= den.y.abs() {
-        (h.x - f.x * t) / den.x
-    } else {
-        (h.y - f.y * t) / den.y
-    };
-    (
-        if s.is_finite() {
-            s.clamp(0.0, 1.0)
+    let (s, t) = crate::mesh::inverse_bilinear(e, f, flat(p[2]) - e - f, flat(x));
+    let unit = |r: f64| {
+        if r.is_finite() {
+            r.clamp(0.0, 1.0)
         } else {
             0.0
-        },
-        t,
-    )
+        }
+    };
+    (unit(s), unit(t))
 }
 
 /// The lightmaps of a bake: for each object and side with faces, in object order (front
@@ -570,7 +537,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn inverse_bilinear_recovers_the_parameters_of_a_skew_quad() {
+    fn quad_parameters_recover_the_parameters_of_a_skew_quad() {
         let p = [
             DVec3::new(0.0, 0.0, 0.0),
             DVec3::new(3.0, 0.2, 0.0),
@@ -582,7 +549,7 @@ mod tests {
                 + p[1] * (s * (1.0 - t))
                 + p[2] * (s * t)
                 + p[3] * ((1.0 - s) * t);
-            let (a, b) = inverse_bilinear(&p, x);
+            let (a, b) = quad_parameters(&p, x);
             assert!(
                 (a - s).abs() < 1e-12 && (b - t).abs() < 1e-12,
                 "{s} {t}: {a} {b}"

@@ -46,7 +46,7 @@ use std::time::Instant;
 use glam::{DVec2, DVec3, Vec3};
 
 use crate::error::Result;
-use crate::mesh::{Layout, PatchSet, NONE};
+use crate::mesh::{inverse_bilinear, Layout, PatchSet, NONE};
 
 pub use embree::flush_denormals;
 pub use embree::PacketWidth;
@@ -583,7 +583,7 @@ impl Cut {
                 } else {
                     q[1] * u + q[2] * v
                 };
-                let (s, t) = inverse_bilinear(q, x);
+                let (s, t) = inverse_bilinear(q[0], q[2], q[1] - q[0] - q[2], x);
                 grid_cell(s, t, nu, nv)
             }
         }
@@ -597,33 +597,6 @@ fn grid_cell(s: f64, t: f64, nu: u32, nv: u32) -> u32 {
     let a = ((s * f64::from(nu)).max(0.0) as u32).min(nu - 1);
     let b = ((t * f64::from(nv)).max(0.0) as u32).min(nv - 1);
     b * nu + a
-}
-
-/// `(s, t)` with `e s + f t + g s t = x` for the planar quad with corners `0, q[0], q[1],
-/// q[2]` (`e = q[0]`, `f = q[2]`, `g = q[1] - q[0] - q[2]`), the root nearest the unit
-/// square. Crossing the equation with `f + g s` removes `t` and leaves
-/// `(e x g) s² + (e x f - x x g) s - x x f = 0` (2D cross products).
-#[inline(always)]
-fn inverse_bilinear(q: [DVec2; 3], x: DVec2) -> (f64, f64) {
-    let (e, f) = (q[0], q[2]);
-    let g = q[1] - q[0] - q[2];
-    let (a, b, c) = (e.perp_dot(g), e.perp_dot(f) - x.perp_dot(g), -x.perp_dot(f));
-    let s = if a.abs() <= 1e-12 * b.abs() {
-        -c / b
-    } else {
-        let root = (b * b - 4.0 * a * c).max(0.0).sqrt();
-        let w = -0.5 * (b + root.copysign(b));
-        let (r1, r2) = (w / a, c / w);
-        let off = |r: f64| (r - r.clamp(0.0, 1.0)).abs();
-        if off(r1) <= off(r2) || !r2.is_finite() {
-            r1
-        } else {
-            r2
-        }
-    };
-    let d = f + g * s;
-    let t = (x - e * s).dot(d) / d.length_squared();
-    (s, t)
 }
 
 /// What [`Visibility::new`] hands Embree, and how to read its hits.
@@ -934,33 +907,6 @@ f 1 2 3 4\nf 5 6 7 8\nf 9 10 11 12\nf 13 14 15\nf 16 17 18 19\n";
                 }
             }
             assert!(checked > 3000, "{checked}");
-        }
-    }
-
-    /// The inverse bilinear map undoes the bilinear one on a trapezoid and on a kite.
-    #[test]
-    fn inverse_bilinear_undoes_the_map() {
-        for q in [
-            [
-                DVec2::new(2.0, 0.0),
-                DVec2::new(1.5, 1.0),
-                DVec2::new(0.5, 1.0),
-            ],
-            [
-                DVec2::new(1.0, -0.2),
-                DVec2::new(1.7, 1.1),
-                DVec2::new(0.1, 0.9),
-            ],
-        ] {
-            for k in 0..121 {
-                let (s, t) = (0.1 * (k % 11) as f64, 0.1 * (k / 11) as f64);
-                let x = q[0] * (s * (1.0 - t)) + q[1] * (s * t) + q[2] * ((1.0 - s) * t);
-                let (s2, t2) = inverse_bilinear(q, x);
-                assert!(
-                    (s2 - s).abs() < 1e-12 && (t2 - t).abs() < 1e-12,
-                    "{s} {t}: {s2} {t2}"
-                );
-            }
         }
     }
 }
