@@ -58,6 +58,18 @@ pub trait RowEntries: Sync {
     }
 }
 
+impl RowEntries for Row {
+    fn len(&self) -> usize {
+        self.entries.len()
+    }
+    fn at(&self, k: usize) -> Entry {
+        self.entries[k]
+    }
+    fn first_from(&self, j: usize) -> usize {
+        self.entries.first_from(j)
+    }
+}
+
 impl RowEntries for Vec<Entry> {
     fn len(&self) -> usize {
         Vec::len(self)

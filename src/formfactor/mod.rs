@@ -21,11 +21,12 @@ pub mod semi;
 pub mod shard;
 
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Mutex;
 use std::time::Instant;
 
 use rayon::prelude::*;
 
-use crate::matrix::{sort_row, CsrBuilder, FormFactors};
+use crate::matrix::{sort_row, CsrBuilder, FormFactors, RowEntries};
 pub use crate::matrix::{Entry, Row};
 use crate::mesh::PatchSet;
 use crate::visibility::Visibility;
@@ -223,6 +224,71 @@ where
     (rows.into_iter().map(|r| r.0).collect(), rays)
 }
 
+/// Scratch buffers lent to the rows' workers and given back when a worker's share of a
+/// block ends, so that the next block reuses them: buffers made afresh for each share
+/// (the hemisphere's tallies are 16 bytes a patch) were faulted in anew, page by page.
+#[derive(Default)]
+struct Lender(Mutex<Vec<Scratch>>);
+
+/// Scratch lent by a [`Lender`], given back when dropped.
+struct Lent<'a> {
+    lender: &'a Lender,
+    scratch: Scratch,
+}
+
+impl Lender {
+    fn lend(&self) -> Lent<'_> {
+        let scratch = self.0.lock().map(|mut v| v.pop()).ok().flatten();
+        Lent {
+            lender: self,
+            scratch: scratch.unwrap_or_default(),
+        }
+    }
+}
+
+impl Drop for Lent<'_> {
+    fn drop(&mut self) {
+        if let Ok(mut v) = self.lender.0.lock() {
+            v.push(std::mem::take(&mut self.scratch));
+        }
+    }
+}
+
+/// Computes rows `lo..lo + rows.len()` in parallel into `rows`, whose entry vectors keep
+/// their capacity from the block before (no fresh pages for them either), with scratch
+/// lent by `lender`; returns the rays cast.
+#[allow(clippy::too_many_arguments)]
+fn rows_into(
+    ctx: &Context,
+    est: &dyn Estimator,
+    lo: usize,
+    rows: &mut [Row],
+    lender: &Lender,
+    done: &AtomicU64,
+    n: u64,
+    progress: &(dyn Fn(u64) + Sync),
+) -> u64 {
+    rows.par_iter_mut()
+        .enumerate()
+        .with_min_len(1)
+        .map_init(
+            || lender.lend(),
+            |lent, (k, row)| {
+                row.entries.clear();
+                row.rays = 0;
+                est.row(ctx, lo + k, row, &mut lent.scratch);
+                // Sorted here, in parallel, so that the assembly only copies.
+                sort_row(&mut row.entries);
+                let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+                if d % 64 == 0 || d == n {
+                    progress(d);
+                }
+                row.rays
+            },
+        )
+        .sum()
+}
+
 /// Makes room in `csr` for the block `rows` (rows `lo..` of `n`), reserving for the rest
 /// of the matrix at once so that the arrays seldom grow: a growth copies every entry so
 /// far and holds both copies at the peak (at 256k patches that was 18 s and a third more
@@ -232,8 +298,8 @@ where
 /// reserved but never written costs no memory) and the system grants it; else that
 /// density plus 10%. A later block that does not fit reserves for the remaining rows at
 /// the density so far plus 25%.
-fn reserve(csr: &mut CsrBuilder, rows: &[Vec<Entry>], lo: usize, n: usize, bound: usize) {
-    let nnz: usize = rows.iter().map(Vec::len).sum();
+fn reserve<R: RowEntries>(csr: &mut CsrBuilder, rows: &[R], lo: usize, n: usize, bound: usize) {
+    let nnz: usize = rows.iter().map(R::len).sum();
     let done = lo + rows.len();
     if lo == 0 && done == n {
         csr.reserve_exact(nnz);
@@ -274,22 +340,16 @@ pub fn compute_timed(
         split.assembly = t.elapsed().as_secs_f64();
     } else {
         csr = CsrBuilder::with_capacity(n, 0);
+        let mut block = vec![Row::default(); BLOCK_ROWS.min(n)];
+        let lender = Lender::default();
         for lo in (0..n).step_by(BLOCK_ROWS) {
             let t = Instant::now();
-            let (rows, r) = rows_par(
-                ctx,
-                est,
-                lo..(lo + BLOCK_ROWS).min(n),
-                &done,
-                n as u64,
-                progress,
-            );
-            rays += r;
+            let rows = &mut block[..BLOCK_ROWS.min(n - lo)];
+            rays += rows_into(ctx, est, lo, rows, &lender, &done, n as u64, progress);
             split.rows += t.elapsed().as_secs_f64();
             let t = Instant::now();
-            reserve(&mut csr, &rows, lo, n, est.row_bound(n).min(n));
-            csr.push_rows(&rows);
-            drop(rows);
+            reserve(&mut csr, rows, lo, n, est.row_bound(n).min(n));
+            csr.push_rows(rows);
             split.assembly += t.elapsed().as_secs_f64();
         }
     }
