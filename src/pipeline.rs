@@ -891,6 +891,7 @@ fn bake_hierarchical(
         converged: last.solve.converged,
         notes: r.notes.clone(),
         relaxation: None,
+        coarse: 0,
     };
     Ok(BakeSummary {
         scene: scene.name.clone(),
@@ -1169,7 +1170,7 @@ pub fn format_summary(s: &BakeSummary) -> String {
         o,
         "solve: {}{} in {} iterations, relative residual {:.2e}, worst patch {:.2e}{}",
         s.solve.solver,
-        relaxation_note(s.solve.relaxation),
+        relaxation_note(s.solve.relaxation, s.solve.coarse),
         s.solve.iterations,
         s.solve.residual,
         s.solve.patch_residual,
@@ -1222,11 +1223,17 @@ pub fn wrap(text: &str, width: usize) -> String {
 }
 
 /// ` (omega 1.1)`, or ` (omega 1.1/1.1/1.08)` when the channels differ, for an
-/// over-relaxed solve; empty otherwise.
-fn relaxation_note(omega: Option<[f64; 3]>) -> String {
+/// over-relaxed solve, with `, coarse correction over N aggregates` when it had one;
+/// empty otherwise.
+fn relaxation_note(omega: Option<[f64; 3]>, aggregates: usize) -> String {
+    let coarse = if aggregates > 0 {
+        format!(", coarse correction over {aggregates} aggregates")
+    } else {
+        String::new()
+    };
     match omega {
-        Some([r, g, b]) if r == g && g == b => format!(" (omega {r:.4})"),
-        Some([r, g, b]) => format!(" (omega {r:.4}/{g:.4}/{b:.4})"),
+        Some([r, g, b]) if r == g && g == b => format!(" (omega {r:.4}{coarse})"),
+        Some([r, g, b]) => format!(" (omega {r:.4}/{g:.4}/{b:.4}{coarse})"),
         None => String::new(),
     }
 }

@@ -70,20 +70,57 @@ pub fn factor_bytes(n: usize) -> u64 {
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Direct;
 
-/// One LU factor of `I - diag(rho_c) F` and the channels it serves.
-struct Factor {
+/// A dense LU factorisation with partial (row) pivoting, by `faer`: the direct solve's
+/// and the coarse correction's (`coarse` module).
+pub(crate) struct Lu {
     lu: Mat<f64>,
     fwd: Vec<usize>,
     inv: Vec<usize>,
-    channels: Vec<usize>,
 }
 
-impl Factor {
-    /// Solves `(I - diag(rho_c) F) x = rhs` in place for the factor's channels.
-    fn solve(&self, rhs: &mut [[f64; 3]]) {
-        let n = rhs.len();
-        let k = self.channels.len();
-        let mut m = Mat::<f64>::from_fn(n, k, |i, c| rhs[i][self.channels[c]]);
+impl Lu {
+    /// Factors the square matrix `a`, and returns the smallest pivot's magnitude (a NaN
+    /// pivot counts as the smallest), its step, and the largest pivot's magnitude.
+    pub(crate) fn of(mut a: Mat<f64>) -> (Lu, (f64, usize, f64)) {
+        let n = a.nrows();
+        let par = faer::get_global_parallelism();
+        let mut fwd = vec![0usize; n];
+        let mut inv = vec![0usize; n];
+        let mut buf = MemBuffer::new(factor::lu_in_place_scratch::<usize, f64>(
+            n,
+            n,
+            par,
+            Default::default(),
+        ));
+        factor::lu_in_place(
+            a.as_mut(),
+            &mut fwd,
+            &mut inv,
+            par,
+            MemStack::new(&mut buf),
+            Default::default(),
+        );
+        let (mut lo, mut lo_at, mut hi) = (f64::INFINITY, 0, 0.0f64);
+        for i in 0..n {
+            let u = a[(i, i)].abs();
+            if u.is_nan() || u < lo {
+                lo = u;
+                lo_at = i;
+            }
+            hi = hi.max(u);
+        }
+        (Lu { lu: a, fwd, inv }, (lo, lo_at, hi))
+    }
+
+    /// True when the pivots `(lo, _, hi)` of [`Lu::of`] for `n` unknowns leave the matrix
+    /// singular to working precision: the smallest at most `n` ulps of the largest.
+    pub(crate) fn singular((lo, _, hi): (f64, usize, f64), n: usize) -> bool {
+        n > 0 && !(lo.is_finite() && hi.is_finite() && lo > n as f64 * f64::EPSILON * hi)
+    }
+
+    /// Solves for the columns of `m` in place.
+    pub(crate) fn solve_in_place(&self, m: &mut Mat<f64>) {
+        let (n, k) = (m.nrows(), m.ncols());
         let par = faer::get_global_parallelism();
         let mut buf = MemBuffer::new(lu_solve::solve_in_place_scratch::<usize, f64>(n, k, par));
         let perm = faer::perm::PermRef::new_checked(&self.fwd, &self.inv, n);
@@ -95,6 +132,21 @@ impl Factor {
             par,
             MemStack::new(&mut buf),
         );
+    }
+}
+
+/// One LU factor of `I - diag(rho_c) F` and the channels it serves.
+struct Factor {
+    lu: Lu,
+    channels: Vec<usize>,
+}
+
+impl Factor {
+    /// Solves `(I - diag(rho_c) F) x = rhs` in place for the factor's channels.
+    fn solve(&self, rhs: &mut [[f64; 3]]) {
+        let (n, k) = (rhs.len(), self.channels.len());
+        let mut m = Mat::<f64>::from_fn(n, k, |i, c| rhs[i][self.channels[c]]);
+        self.lu.solve_in_place(&mut m);
         for (i, r) in rhs.iter_mut().enumerate() {
             for (c, &ch) in self.channels.iter().enumerate() {
                 r[ch] = m[(i, c)];
@@ -116,34 +168,9 @@ fn factorise(sys: &System, rows: &Rows, c: usize, channels: Vec<usize>) -> Resul
         }
         a[(i, i)] += 1.0;
     }
-    let par = faer::get_global_parallelism();
-    let mut fwd = vec![0usize; n];
-    let mut inv = vec![0usize; n];
-    let mut buf = MemBuffer::new(factor::lu_in_place_scratch::<usize, f64>(
-        n,
-        n,
-        par,
-        Default::default(),
-    ));
-    factor::lu_in_place(
-        a.as_mut(),
-        &mut fwd,
-        &mut inv,
-        par,
-        MemStack::new(&mut buf),
-        Default::default(),
-    );
-    let (mut lo, mut lo_at, mut hi) = (f64::INFINITY, 0, 0.0f64);
-    for i in 0..n {
-        let u = a[(i, i)].abs();
-        // A NaN pivot counts as the smallest.
-        if u.is_nan() || u < lo {
-            lo = u;
-            lo_at = i;
-        }
-        hi = hi.max(u);
-    }
-    if n > 0 && !(lo.is_finite() && hi.is_finite() && lo > n as f64 * f64::EPSILON * hi) {
+    let (lu, pivots) = Lu::of(a);
+    let (lo, lo_at, hi) = pivots;
+    if Lu::singular(pivots, n) {
         return Err(Error::Singular {
             solver: NAME.into(),
             msg: format!(
@@ -153,12 +180,7 @@ fn factorise(sys: &System, rows: &Rows, c: usize, channels: Vec<usize>) -> Resul
             ),
         });
     }
-    Ok(Factor {
-        lu: a,
-        fwd,
-        inv,
-        channels,
-    })
+    Ok(Factor { lu, channels })
 }
 
 /// Channels grouped by identical reflectances: `(representative, members)`.

@@ -76,9 +76,20 @@
 //! the closed Cornell box with every surface white and one wall emitting (6,000 patches)
 //! 27 against 16 at `rho` 0.8, 43 against 20 at 0.9 and 72 against 28 at 0.97. The solver
 //! study's closed cubes (`radiosity study-solvers`, docs/SOLVERS.md) show the rest.
+//!
+//! ## Bright rooms
+//! Where the system's gain bound is at least 0.9 (a bright, nearly closed room), [`Sor`]
+//! with its factor chosen also corrects the iterate after each sweep on at most 64
+//! aggregates of patches, solving the system exactly on their means (the `coarse`
+//! module). The solution and the
+//! stopping rule are the sweeps' own; what changes is how many it takes. The closed Cornell
+//! furnace box with one wall emitting, hemisphere factors at 6,000 patches: 26 sweeps
+//! against 11 at `rho` 0.9, 59 against 14 at 0.97, 202 against 17 at 0.995
+//! (docs/SOLVERS.md). A factor given by the caller keeps the plain sweeps.
 
+use super::coarse::{self, Coarse};
 use super::{
-    max3, sweep_loop, sweeps, Floor, Options, Prologue, Rows, SolveReport, Solver, System,
+    max3, sweep_loop, sweeps, Floor, Options, Prologue, Rows, Scale, SolveReport, Solver, System,
 };
 use crate::error::{Error, Result};
 
@@ -111,7 +122,8 @@ impl Solver for GaussSeidel {
 pub struct Sor {
     /// The factor, the same for every channel and every sweep; `None` chooses one per
     /// channel, from the system's gain bound and then from the sweeps' rate (module docs,
-    /// *The factor*).
+    /// *The factor*), and in a bright room also corrects the iterate on aggregates between
+    /// sweeps (module docs, *Bright rooms*).
     pub omega: Option<f64>,
 }
 
@@ -136,6 +148,18 @@ impl Solver for Sor {
     }
 
     fn solve(&self, sys: &System, opts: &Options) -> Result<(Vec<[f64; 3]>, SolveReport)> {
+        self.solve_with(sys, opts, self.omega.is_none())
+    }
+}
+
+impl Sor {
+    /// [`Solver::solve`], with the coarse correction of bright rooms allowed or not.
+    fn solve_with(
+        &self,
+        sys: &System,
+        opts: &Options,
+        allow_coarse: bool,
+    ) -> Result<(Vec<[f64; 3]>, SolveReport)> {
         if let Some(w) = self.omega {
             if !(w > 0.0 && w < 2.0) {
                 return Err(Error::Config(format!(
@@ -146,6 +170,14 @@ impl Solver for Sor {
         }
         let pro = Prologue::new(sys, opts)?;
         let safe = pro.gain.gain.map(relaxation);
+        // A bright room's slow error, removed on aggregates between sweeps (`coarse`
+        // module).
+        let gain = pro.gain.gain.into_iter().fold(0.0, f64::max);
+        let coarse = allow_coarse
+            .then(|| Coarse::new(sys, &pro.rows, gain))
+            .flatten();
+        let scale = Scale::new(sys.emit);
+        let (mut correcting, mut least) = (coarse.is_some(), f64::INFINITY);
         let mut adapt: [Adaptive; 3] = std::array::from_fn(|c| match self.omega {
             Some(w) => Adaptive::fixed(w),
             None => Adaptive::new(safe[c]),
@@ -157,9 +189,21 @@ impl Solver for Sor {
             for (a, &r) in adapt.iter_mut().zip(&res) {
                 a.observe(r);
             }
+            if let (Some(c), true) = (&coarse, correcting) {
+                // Off for good at the tolerance, or should the residual grow far past
+                // the least seen (the first correction, lifting a dark start toward the
+                // solution, raised it 4.7 times before it fell 20 times a sweep).
+                let r = scale.rel(res);
+                least = least.min(r);
+                correcting = r > opts.tolerance && r <= coarse::GROWTH * least;
+                if correcting {
+                    c.correct(sys, b);
+                }
+            }
             (res, per_patch)
         })?;
         report.relaxation = Some(adapt.map(|a| a.omega));
+        report.coarse = coarse.as_ref().map_or(0, Coarse::aggregates);
         Ok((b, report))
     }
 }
@@ -531,23 +575,35 @@ mod tests {
         }
     }
 
+    /// A closed furnace of 400 patches at `rho`, lit by one patch in 37.
+    fn lit_furnace(rho: f64) -> Owned {
+        let mut owned = furnace(400, [rho; 3], [1.0; 3]);
+        for (i, e) in owned.emit.iter_mut().enumerate() {
+            *e = if i % 37 == 0 { [1.0; 3] } else { [0.0; 3] };
+        }
+        owned
+    }
+
+    /// Options for [`lit_furnace`]: tolerance 1e-8, room for every sweep it takes.
+    fn bright_opts() -> Options {
+        Options {
+            tolerance: 1e-8,
+            max_iterations: 100_000,
+            ..Options::default()
+        }
+    }
+
     #[test]
     fn sor_finds_the_factor_of_bright_furnaces() {
         // Closed furnaces lit by one patch in 37: Gauss-Seidel slows like 1 / (1 - rho);
         // the factor found from the sweeps' rate cuts that by 2, 5 and 15 times at least.
-        let opts = Options {
-            tolerance: 1e-8,
-            max_iterations: 100_000,
-            ..Options::default()
-        };
+        // (The plain sweeps: the coarse correction of bright rooms is the next test's.)
+        let opts = bright_opts();
         for (rho, gain) in [(0.9, 2.0), (0.99, 5.0), (0.999, 15.0)] {
-            let mut owned = furnace(400, [rho; 3], [1.0; 3]);
-            for (i, e) in owned.emit.iter_mut().enumerate() {
-                *e = if i % 37 == 0 { [1.0; 3] } else { [0.0; 3] };
-            }
+            let owned = lit_furnace(rho);
             let sys = owned.sys();
             let (_, gs) = GaussSeidel.solve(&sys, &opts).unwrap();
-            let (b, sor) = Sor::AUTO.solve(&sys, &opts).unwrap();
+            let (b, sor) = Sor::AUTO.solve_with(&sys, &opts, false).unwrap();
             eprintln!(
                 "rho {rho}: gauss-seidel {} sweeps, sor {} at {:?}",
                 gs.iterations, sor.iterations, sor.relaxation
@@ -565,6 +621,43 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn bright_rooms_take_fewer_sweeps_with_the_coarse_correction() {
+        // Closed furnaces lit by one patch in 37 (as above), gain rho: the correction on
+        // aggregates cuts the sweeps by 4, 10 and 30 times at least (measured 5.5, 19 and
+        // 66), and the answer still agrees with the dense solve to the tolerance. Below the
+        // gain of 0.9 it is not used.
+        let opts = bright_opts();
+        for (rho, gain) in [(0.9, 4.0), (0.99, 10.0), (0.999, 30.0)] {
+            let owned = lit_furnace(rho);
+            let sys = owned.sys();
+            let (_, plain) = Sor::AUTO.solve_with(&sys, &opts, false).unwrap();
+            let (b, two) = Sor::AUTO.solve(&sys, &opts).unwrap();
+            eprintln!(
+                "rho {rho}: sor {} sweeps, with the correction {} ({} aggregates)",
+                plain.iterations, two.iterations, two.coarse
+            );
+            assert_eq!(plain.coarse, 0);
+            assert!(two.coarse >= 2 && two.coarse <= coarse::MAX_AGGREGATES);
+            assert!(
+                (two.iterations as f64) * gain <= plain.iterations as f64,
+                "rho {rho}: {} sweeps against {}",
+                two.iterations,
+                plain.iterations
+            );
+            assert!(two.converged && two.residual <= 1e-8 && two.patch_residual <= 1e-8);
+            let exact = Direct.solve(&sys, &Options::default()).unwrap().0;
+            for (p, q) in b.iter().zip(&exact) {
+                for c in 0..3 {
+                    assert!((p[c] - q[c]).abs() <= 1e-6 * q[c].abs().max(1e-3));
+                }
+            }
+        }
+        let dim = furnace(200, [0.8; 3], [1.0; 3]);
+        let (_, report) = Sor::AUTO.solve(&dim.sys(), &opts).unwrap();
+        assert_eq!(report.coarse, 0, "gain 0.8");
     }
 
     #[test]

@@ -102,6 +102,7 @@ use rayon::prelude::*;
 use crate::error::{Error, Result};
 
 pub mod cg;
+mod coarse;
 pub mod direct;
 pub mod distributed;
 pub mod gauss_seidel;
@@ -351,6 +352,9 @@ pub struct SolveReport {
     pub notes: Vec<String>,
     /// The over-relaxation factor of each channel, for [`Sor`]; `None` for the others.
     pub relaxation: Option<[f64; 3]>,
+    /// Aggregates of the coarse correction between [`Sor`]'s sweeps in a bright room
+    /// (`coarse` module), 0 when none was used.
+    pub coarse: usize,
 }
 
 /// A method for solving the radiosity system.
@@ -899,6 +903,7 @@ pub(crate) fn finish(
         converged,
         notes: out.notes,
         relaxation: None,
+        coarse: 0,
     };
     if converged {
         return Ok((out.b, report));
