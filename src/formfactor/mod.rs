@@ -187,6 +187,26 @@ pub fn compute(ctx: &Context, est: &dyn Estimator, progress: &(dyn Fn(u64) + Syn
     compute_timed(ctx, est, progress).0
 }
 
+/// Row `i` into `row` (cleared first), sorted by column so that the assembly only copies;
+/// counts it in `done` and reports every 64th row and the last of `n` to `progress`.
+fn one_row(
+    ctx: &Context,
+    est: &dyn Estimator,
+    i: usize,
+    row: &mut Row,
+    scratch: &mut Scratch,
+    (done, n, progress): (&AtomicU64, u64, &(dyn Fn(u64) + Sync)),
+) {
+    row.entries.clear();
+    row.rays = 0;
+    est.row(ctx, i, row, scratch);
+    sort_row(&mut row.entries);
+    let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+    if d % 64 == 0 || d == n {
+        progress(d);
+    }
+}
+
 /// Computes rows `range` (row indices) in parallel, each row's entries in an exactly
 /// sized vector, in the order of `range`.
 fn rows_par<I>(
@@ -207,15 +227,7 @@ where
         .map_init(
             || (Row::default(), Scratch::default()),
             |(row, scratch), i| {
-                row.entries.clear();
-                row.rays = 0;
-                est.row(ctx, i, row, scratch);
-                // Sorted here, in parallel, so that the assembly only copies.
-                sort_row(&mut row.entries);
-                let d = done.fetch_add(1, Ordering::Relaxed) + 1;
-                if d % 64 == 0 || d == n {
-                    progress(d);
-                }
+                one_row(ctx, est, i, row, scratch, (done, n, progress));
                 (row.entries.as_slice().to_vec(), row.rays)
             },
         )
@@ -274,15 +286,14 @@ fn rows_into(
         .map_init(
             || lender.lend(),
             |lent, (k, row)| {
-                row.entries.clear();
-                row.rays = 0;
-                est.row(ctx, lo + k, row, &mut lent.scratch);
-                // Sorted here, in parallel, so that the assembly only copies.
-                sort_row(&mut row.entries);
-                let d = done.fetch_add(1, Ordering::Relaxed) + 1;
-                if d % 64 == 0 || d == n {
-                    progress(d);
-                }
+                one_row(
+                    ctx,
+                    est,
+                    lo + k,
+                    row,
+                    &mut lent.scratch,
+                    (done, n, progress),
+                );
                 row.rays
             },
         )

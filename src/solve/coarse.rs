@@ -71,8 +71,9 @@ const NONE: u32 = u32::MAX;
 impl Coarse {
     /// The correction for `sys`, or `None` when its gain bound `gain` (largest over
     /// channels) is not in `[BRIGHT, 1)` (from 1 on the sweeps may diverge, and the
-    /// solvers say so rather than solve an unphysical system), fewer than two patches belong to an aggregate, or a
-    /// coarse system is singular.
+    /// solvers say so rather than solve an unphysical system), fewer than two patches
+    /// belong to an aggregate, there would be more than [`MAX_AGGREGATES`], or a coarse
+    /// system is singular.
     pub(crate) fn new(sys: &System, rows: &Rows, gain: f64) -> Option<Coarse> {
         let n = sys.len();
         if !(BRIGHT..1.0).contains(&gain) || n < 2 {
@@ -147,25 +148,36 @@ impl Coarse {
         self.area.len()
     }
 
-    /// Adds to `b` the correction `P M_c^-1 R r(b)` (module docs).
+    /// Adds to `b` the correction `P M_c^-1 R r(b)` (module docs): one pass over `b` and
+    /// one over the couplings for all three channels, then a small solve per channel.
     pub(crate) fn correct(&self, sys: &System, b: &mut [[f64; 3]]) {
         let (n, na) = (b.len(), self.area.len());
-        for (c, lu) in self.lu.iter().enumerate() {
-            let mut rr = Mat::<f64>::zeros(na, 1);
-            for i in 0..n {
-                if self.of[i] != NONE {
-                    rr[(self.of[i] as usize, 0)] += sys.area[i] * (sys.emit[i][c] - b[i][c]);
+        let mut rr = vec![[0.0f64; 3]; na];
+        for (i, &a) in self.of.iter().enumerate() {
+            if a != NONE {
+                for c in 0..3 {
+                    rr[a as usize][c] += sys.area[i] * (sys.emit[i][c] - b[i][c]);
                 }
             }
-            for a in 0..na {
-                let d = &self.couplings[a * n..(a + 1) * n];
-                let db: f64 = d.iter().zip(b.iter()).map(|(&dj, bj)| dj * bj[c]).sum();
-                rr[(a, 0)] = (rr[(a, 0)] + self.rho[a][c] * db) / self.area[a];
+        }
+        for (a, r) in rr.iter_mut().enumerate() {
+            let d = &self.couplings[a * n..(a + 1) * n];
+            let db = d.iter().zip(b.iter()).fold([0.0f64; 3], |s, (&dj, bj)| {
+                [s[0] + dj * bj[0], s[1] + dj * bj[1], s[2] + dj * bj[2]]
+            });
+            for c in 0..3 {
+                r[c] = (r[c] + self.rho[a][c] * db[c]) / self.area[a];
             }
-            lu.solve_in_place(&mut rr);
-            for (bi, &a) in b.iter_mut().zip(&self.of) {
-                if a != NONE {
-                    bi[c] += rr[(a as usize, 0)];
+        }
+        let delta = [0, 1, 2].map(|c| {
+            let mut m = Mat::<f64>::from_fn(na, 1, |a, _| rr[a][c]);
+            self.lu[c].solve_in_place(&mut m);
+            m
+        });
+        for (bi, &a) in b.iter_mut().zip(&self.of) {
+            if a != NONE {
+                for c in 0..3 {
+                    bi[c] += delta[c][(a as usize, 0)];
                 }
             }
         }

@@ -89,7 +89,7 @@
 
 use super::coarse::{self, Coarse};
 use super::{
-    max3, sweep_loop, sweeps, Floor, Options, Prologue, Rows, Scale, SolveReport, Solver, System,
+    max3, sweep_loop, sweeps, Floor, Options, Prologue, Rows, SolveReport, Solver, System,
 };
 use crate::error::{Error, Result};
 
@@ -176,7 +176,7 @@ impl Sor {
         let coarse = allow_coarse
             .then(|| Coarse::new(sys, &pro.rows, gain))
             .flatten();
-        let scale = Scale::new(sys.emit);
+        let scale = pro.scale;
         let (mut correcting, mut least) = (coarse.is_some(), f64::INFINITY);
         let mut adapt: [Adaptive; 3] = std::array::from_fn(|c| match self.omega {
             Some(w) => Adaptive::fixed(w),
