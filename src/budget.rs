@@ -9,7 +9,10 @@
 //!   plus half of a row entry's 24: estimators that compute the upper triangle hold it
 //!   while the whole matrix is assembled), at most
 //!   `n - 1` entries per row, fewer for the estimators that cast a fixed number of rays per
-//!   row (hemisphere, hemicube); a dense `n x n` copy for the direct solver;
+//!   row (hemisphere, hemicube); a dense `n x n` copy for the direct solver (the
+//!   diagnostics' copies of back entries, at most 16 bytes times
+//!   [`crate::matrix::RECIPROCITY_SAMPLE`], come after the row entries are freed, and
+//!   fit in their place);
 //! - the preview: [`PER_PIXEL`] bytes per output pixel (2 x 2 samples of colour and depth,
 //!   the 8-bit image and its encoding).
 //!

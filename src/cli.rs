@@ -11,6 +11,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use radiosity::cluster::{Cluster, Single};
 use radiosity::formfactor::EstimatorKind;
+use radiosity::matrix::Reciprocity;
 use radiosity::mesh::Resolution;
 use radiosity::output::Exposure;
 use radiosity::pipeline::{self, BakeConfig, EstimatorChoice, Observer};
@@ -565,6 +566,10 @@ struct BakeArgs {
     mesh: MeshArgs,
     #[command(flatten)]
     est: FactorArgs,
+    /// Which stored pairs the diagnostics check for reciprocity (row sums and ranges are
+    /// checked on every row).
+    #[arg(long, value_enum, default_value_t = Reciprocity::Auto)]
+    reciprocity: Reciprocity,
     #[command(flatten)]
     hier: HierarchyArgs,
     /// Radiosity solver.
@@ -629,6 +634,10 @@ struct FactorsArgs {
     mesh: MeshArgs,
     #[command(flatten)]
     factors: FactorArgs,
+    /// Which stored pairs the diagnostics check for reciprocity (row sums and ranges are
+    /// checked on every row).
+    #[arg(long, value_enum, default_value_t = Reciprocity::Auto)]
+    reciprocity: Reciprocity,
     /// Layout of the matrix files: Matrix Market text or SciPy's sparse npz.
     #[arg(long, value_enum, default_value_t = Format::Auto)]
     format: Format,
@@ -825,9 +834,10 @@ const ESTIMATOR_FLAGS: [&str; 5] = ["estimator", "samples", "rays", "tol", "repl
 /// Settings of the flat method's matrix that the hierarchical method has no use for
 /// (beyond [`ESTIMATOR_FLAGS`]): given, they make `--method auto` flat, and are refused
 /// with `--method hierarchical`.
-const MATRIX_FLAGS: [&str; 6] = [
+const MATRIX_FLAGS: [&str; 7] = [
     "factors",
     "repair",
+    "reciprocity",
     "solver",
     "steps",
     "floor",
@@ -998,6 +1008,7 @@ fn bake(args: &BakeArgs, method: MethodArg, auto: bool, cluster: &dyn Cluster) -
         factors: args.factors.clone(),
         steps: args.steps.clone(),
         repair: args.est.repair,
+        reciprocity: args.reciprocity,
         max_memory: args.est.max_memory,
         hierarchy,
         fallback,
@@ -1271,6 +1282,7 @@ fn dispatch(cli: &Cli, matches: &clap::ArgMatches, cluster: &dyn Cluster) -> Res
                 seed: args.factors.seed,
                 out_dir: &args.output,
                 repair: args.factors.repair,
+                reciprocity: args.reciprocity,
                 format: args.format,
                 max_memory: args.factors.max_memory,
                 two_sided: args.two_sided,
@@ -1294,8 +1306,11 @@ fn dispatch(cli: &Cli, matches: &clap::ArgMatches, cluster: &dyn Cluster) -> Res
             )?;
             writeln!(
                 o,
-                "row sums in [{:.5}, {:.5}], reciprocity error <= {:.1e}",
-                d.min_row_sum, d.max_row_sum, d.reciprocity,
+                "row sums in [{:.5}, {:.5}], reciprocity error <= {:.1e}{}",
+                d.min_row_sum,
+                d.max_row_sum,
+                d.reciprocity,
+                d.reciprocity_scope(p.patches),
             )?;
             writeln!(o, "bounds: {}", s.repair.before.summary())?;
             if p.unresolved > 0.0 {

@@ -181,8 +181,17 @@ impl Bar {
     /// The bar of the sum of two independent errors: standard errors in quadrature, bounds
     /// linearly.
     pub fn plus(self, o: Bar) -> Bar {
+        // `hypot(x, 0) = |x|` exactly: a sum with a bar that has no random part (the
+        // reciprocity check of a pair stored one way) skips the library call.
+        let se = if o.se == 0.0 {
+            self.se.abs()
+        } else if self.se == 0.0 {
+            o.se.abs()
+        } else {
+            self.se.hypot(o.se)
+        };
         Bar {
-            se: self.se.hypot(o.se),
+            se,
             bound: self.bound + o.bound,
         }
     }
@@ -428,6 +437,25 @@ pub struct FormFactors {
 
 /// Form factors at least this large count as significant for the reciprocity figure.
 pub const SIGNIFICANT: f64 = 1e-3;
+
+/// Which stored pairs [`FormFactors::diagnostics_with`] checks for reciprocity (also the
+/// command line's `--reciprocity` values). Row sums and ranges are always checked on every
+/// row. The check of every pair reads the whole matrix once per block of a few thousand
+/// rows: at 300,000 patches it took as much CPU time as the solve, where
+/// [`RECIPROCITY_SAMPLE`] pairs take a fifth of it (`docs/PERFORMANCE.md`, section 1).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum Reciprocity {
+    /// Every pair of a matrix of up to 2^23 (8.4 million) stored factors; of a larger one,
+    /// the pairs of every m-th row, m such that they hold about that many.
+    #[default]
+    Auto,
+    /// Every stored pair, whatever the matrix's size.
+    All,
+}
+
+/// Stored factors up to which [`Reciprocity::Auto`] checks every pair, and about how many
+/// of a larger matrix's it checks.
+pub const RECIPROCITY_SAMPLE: usize = 1 << 23;
 
 /// Builds the CSR arrays a row or a block of rows at a time, so that rows can be freed as
 /// they are added (no dense `N x N` anything, and no second copy of the whole matrix).
@@ -683,6 +711,10 @@ pub struct Diagnostics {
     pub out_of_range: usize,
     /// Stored entries.
     pub nnz: usize,
+    /// Rows whose stored pairs were checked for reciprocity: every row, or those of evenly
+    /// spaced blocks ([`Reciprocity::Auto`]); the three reciprocity figures are over their
+    /// pairs.
+    pub reciprocity_rows: usize,
 }
 
 impl FormFactors {
@@ -822,9 +854,117 @@ impl FormFactors {
         sum_bar(&self.se[lo..hi])
     }
 
-    /// Row sums, reciprocity and range checks.
+    /// Row sums, reciprocity and range checks, reciprocity over every stored pair.
     pub fn diagnostics(&self) -> Diagnostics {
-        self.diagnostics_in_blocks(DIAGNOSTIC_BLOCK)
+        self.diagnostics_with(Reciprocity::All)
+    }
+
+    /// Row sums and range checks over every row; reciprocity over the pairs `which`
+    /// says.
+    pub fn diagnostics_with(&self, which: Reciprocity) -> Diagnostics {
+        if which == Reciprocity::All || self.f.nnz() <= RECIPROCITY_SAMPLE {
+            self.diagnostics_in_blocks(DIAGNOSTIC_BLOCK)
+        } else {
+            self.diagnostics_sampled(RECIPROCITY_SAMPLE)
+        }
+    }
+
+    /// Row sums and ranges over every row; reciprocity over the pairs of every `m`-th row,
+    /// `m` such that they hold about `budget` stored factors. Two passes over the rows
+    /// `j`, split among the threads in order: the first takes every row's sum and counts
+    /// the entries `F_ji` whose row `i` is picked, the second copies them out, each
+    /// part's lined up by picked row (a counting sort). Each picked row is then merged
+    /// with its back entries, the parts' in order, so in column order. The copies take
+    /// 16 bytes a checked pair.
+    fn diagnostics_sampled(&self, budget: usize) -> Diagnostics {
+        use rayon::prelude::*;
+        let (n, nnz) = (self.len(), self.f.nnz());
+        let (ptr, idx, val, se) = (self.f.indptr(), self.f.indices(), self.f.data(), &self.se);
+        // At least one row.
+        let m = nnz.div_ceil(budget.max(1)).clamp(1, n.max(1));
+        // Rows m/2, m/2 + m, ...: picked row `i` is the (i / m)-th.
+        let picked: Vec<usize> = (m / 2..n).step_by(m).collect();
+        let mut bits = vec![0u64; n.div_ceil(64)];
+        for &i in &picked {
+            bits[i / 64] |= 1 << (i % 64);
+        }
+        let is_picked = |i: usize| (bits[i / 64] >> (i % 64)) & 1 != 0;
+        let parts: Vec<std::ops::Range<usize>> = {
+            let k = (4 * rayon::current_num_threads()).clamp(1, n.max(1));
+            (0..k).map(|c| c * n / k..(c + 1) * n / k).collect()
+        };
+        // Every row's head; per part, where each picked row's back entries start.
+        let heads: Vec<(Diagnostics, Vec<usize>)> = parts
+            .par_iter()
+            .map(|r| {
+                let mut start = vec![0usize; picked.len() + 1];
+                let mut d = Diagnostics::empty();
+                for j in r.clone() {
+                    let (lo, hi) = (ptr.index(j), ptr.index(j + 1));
+                    d = Diagnostics::merge(d, row_head(j, &val[lo..hi], &se[lo..hi]));
+                    for &i in &idx[lo..hi] {
+                        if is_picked(i as usize) {
+                            start[i as usize / m + 1] += 1;
+                        }
+                    }
+                }
+                for t in 0..picked.len() {
+                    start[t + 1] += start[t];
+                }
+                (d, start)
+            })
+            .collect();
+        let backs: Vec<Vec<Back>> = parts
+            .par_iter()
+            .zip(&heads)
+            .map(|(r, (_, start))| {
+                let mut at = start.clone();
+                let mut out = vec![Back::default(); start[picked.len()]];
+                for j in r.clone() {
+                    for k in ptr.index(j)..ptr.index(j + 1) {
+                        let i = idx[k] as usize;
+                        if is_picked(i) {
+                            let t = i / m;
+                            out[at[t]] = Back {
+                                j: j as u32,
+                                se: se[k],
+                                f: val[k],
+                            };
+                            at[t] += 1;
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
+        let recip = picked
+            .par_iter()
+            .enumerate()
+            .map(|(t, &i)| {
+                let (lo, hi) = (ptr.index(i), ptr.index(i + 1));
+                let mut mine = backs
+                    .iter()
+                    .zip(&heads)
+                    .flat_map(|(b, (_, start))| &b[start[t]..start[t + 1]]);
+                let mut next = mine.next();
+                let row = (&idx[lo..hi], &val[lo..hi], &se[lo..hi]);
+                row_reciprocity(i, row, &self.area, |_, j| {
+                    // Back entries before column j have no entry of their own in row i.
+                    while next.is_some_and(|b| (b.j as usize) < j) {
+                        next = mine.next();
+                    }
+                    let hit = next.filter(|b| b.j as usize == j).map(|b| (b.f, b.se));
+                    if hit.is_some() {
+                        next = mine.next();
+                    }
+                    hit
+                })
+            })
+            .reduce(Diagnostics::empty, Diagnostics::merge);
+        let d = heads
+            .into_iter()
+            .fold(Diagnostics::empty(), |d, (h, _)| Diagnostics::merge(d, h));
+        Diagnostics::merge(d, recip).finish(nnz, n)
     }
 
     /// [`FormFactors::diagnostics`] with blocks of `block` rows. Runs of consecutive rows go
@@ -873,7 +1013,7 @@ impl FormFactors {
         let (mut pairs, mut beyond) = (0usize, 0usize);
         let mut pair = |d: &mut Diagnostics, i: usize, k: usize, back: Option<(f64, f32)>| {
             let (j, f) = (idx[k] as usize, val[k]);
-            if let Some(b) = check_entry(&self.area, (i, j), (f, se[k]), back, d) {
+            if let Some(b) = reciprocity_of(&self.area, (i, j), (f, Bar::of(se[k])), back, d) {
                 pairs += 1;
                 beyond += usize::from(b);
             }
@@ -915,8 +1055,18 @@ impl FormFactors {
         }
         d.reciprocity_beyond_3se = beyond as f64;
         d.nnz = pairs;
+        d.reciprocity_rows = rows.len();
         d
     }
+}
+
+/// A back entry `F_ji` copied out by [`FormFactors::diagnostics_with`]'s sampled check:
+/// its row `j`, standard error and value.
+#[derive(Clone, Copy, Default)]
+struct Back {
+    j: u32,
+    se: f32,
+    f: f64,
 }
 
 /// Rows per block of [`FormFactors::diagnostics`]: a block's rows, read a few cache lines
@@ -932,24 +1082,39 @@ fn row_diagnostics(
     i: usize,
     (cols, vals, ses): (&[u32], &[f64], &[f32]),
     area: &[f64],
+    back: impl FnMut(usize, usize) -> Option<(f64, f32)>,
+) -> Diagnostics {
+    Diagnostics::merge(
+        row_head(i, vals, ses),
+        row_reciprocity(i, (cols, vals, ses), area, back),
+    )
+}
+
+/// The reciprocity part of [`row_diagnostics`] alone.
+fn row_reciprocity(
+    i: usize,
+    (cols, vals, ses): (&[u32], &[f64], &[f32]),
+    area: &[f64],
     mut back: impl FnMut(usize, usize) -> Option<(f64, f32)>,
 ) -> Diagnostics {
-    let mut d = row_head(i, vals, ses);
+    let mut d = Diagnostics::empty();
     let (mut pairs, mut beyond) = (0usize, 0usize);
     for (k, ((&j, &f), &se_ij)) in cols.iter().zip(vals).zip(ses).enumerate() {
         let j = j as usize;
-        if let Some(b) = check_entry(area, (i, j), (f, se_ij), back(k, j), &mut d) {
+        if let Some(b) = reciprocity_of(area, (i, j), (f, Bar::of(se_ij)), back(k, j), &mut d) {
             pairs += 1;
             beyond += usize::from(b);
         }
     }
     d.reciprocity_beyond_3se = beyond as f64;
     d.nnz = pairs;
+    d.reciprocity_rows = 1;
     d
 }
 
 /// The diagnostics of row `i` that need no other row: its sum (values `vals`, standard
-/// errors `ses`), whether it is empty, whether it is over 1 beyond 3 bars.
+/// errors `ses`), whether it is empty, whether it is over 1 beyond 3 bars, how many of
+/// its entries are outside [0, 1] or not finite.
 fn row_head(i: usize, vals: &[f64], ses: &[f32]) -> Diagnostics {
     // `+ 0.0`: the sum of no terms is -0.0, printed `-0.00000` for an empty row.
     let s: f64 = vals.iter().sum::<f64>() + 0.0;
@@ -959,25 +1124,12 @@ fn row_head(i: usize, vals: &[f64], ses: &[f32]) -> Diagnostics {
         max_row: i,
         empty_rows: usize::from(vals.is_empty()),
         rows_over_one: usize::from(over_one(s, sum_bar(ses), 3.0)),
+        out_of_range: vals
+            .iter()
+            .filter(|f| !f.is_finite() || !(0.0..=1.0).contains(*f))
+            .count(),
         ..Default::default()
     }
-}
-
-/// The checks of one stored entry `F_ij = f` (standard error `se_ij`) whose back entry
-/// is `back`: its range, into `d.out_of_range`, and its reciprocity ([`reciprocity_of`],
-/// whose answer it returns).
-#[inline]
-fn check_entry(
-    area: &[f64],
-    (i, j): (usize, usize),
-    (f, se_ij): (f64, f32),
-    back: Option<(f64, f32)>,
-    d: &mut Diagnostics,
-) -> Option<bool> {
-    if !f.is_finite() || !(0.0..=1.0).contains(&f) {
-        d.out_of_range += 1;
-    }
-    reciprocity_of(area, (i, j), (f, Bar::of(se_ij)), back, d)
 }
 
 /// Folds the reciprocity gap `|A_i F_ij - A_j F_ji|` of the stored entry `F_ij = f`
@@ -1009,6 +1161,23 @@ fn reciprocity_of(
 }
 
 impl Diagnostics {
+    /// Empty when every row's pairs were checked for reciprocity (of `rows` rows); else
+    /// which were, to follow the word "reciprocity" in a summary.
+    pub fn reciprocity_scope(&self, rows: usize) -> String {
+        if self.reciprocity_rows >= rows {
+            String::new()
+        } else {
+            format!(
+                " (the pairs of {} evenly spaced rows of {rows}; \
+                 `--reciprocity all` for every pair)",
+                self.reciprocity_rows
+            )
+        }
+    }
+
+    /// How many numbers [`Diagnostics::to_numbers`] makes.
+    pub const NUMBERS: usize = 11;
+
     /// The neutral element of [`Diagnostics::merge`].
     pub fn empty() -> Diagnostics {
         Diagnostics {
@@ -1037,6 +1206,7 @@ impl Diagnostics {
             rows_over_one: a.rows_over_one + b.rows_over_one,
             out_of_range: a.out_of_range + b.out_of_range,
             nnz: a.nnz + b.nnz,
+            reciprocity_rows: a.reciprocity_rows + b.reciprocity_rows,
         }
     }
 
@@ -1059,7 +1229,7 @@ impl Diagnostics {
 
     /// The fields as numbers (exact: the counts are far below 2^53), to send between
     /// ranks; [`Diagnostics::from_numbers`] reads them back.
-    pub fn to_numbers(&self) -> [f64; 10] {
+    pub fn to_numbers(&self) -> [f64; Diagnostics::NUMBERS] {
         [
             self.min_row_sum,
             self.max_row_sum,
@@ -1071,6 +1241,7 @@ impl Diagnostics {
             self.rows_over_one as f64,
             self.out_of_range as f64,
             self.nnz as f64,
+            self.reciprocity_rows as f64,
         ]
     }
 
@@ -1087,6 +1258,7 @@ impl Diagnostics {
             rows_over_one: v[7] as usize,
             out_of_range: v[8] as usize,
             nnz: v[9] as usize,
+            reciprocity_rows: v[10] as usize,
         }
     }
 }
@@ -1562,6 +1734,15 @@ mod tests {
     /// The diagnostics with a binary search per back entry, row by row: the reference for
     /// the blocked walk of `FormFactors::diagnostics` (the same per-pair figures).
     fn diagnostics_by_search(ff: &FormFactors) -> Diagnostics {
+        diagnostics_of_rows_by_search(ff, |_| true)
+    }
+
+    /// Row sums over every row, reciprocity over the rows `checked` picks, each back entry
+    /// found by a binary search.
+    fn diagnostics_of_rows_by_search(
+        ff: &FormFactors,
+        checked: impl Fn(usize) -> bool,
+    ) -> Diagnostics {
         let mut d = Diagnostics {
             min_row_sum: f64::INFINITY,
             max_row_sum: f64::NEG_INFINITY,
@@ -1576,6 +1757,10 @@ mod tests {
                 (d.max_row_sum, d.max_row) = (s, i);
             }
             d.min_row_sum = d.min_row_sum.min(s);
+            if !checked(i) {
+                continue;
+            }
+            d.reciprocity_rows += 1;
             for (k, (j, &f)) in row.iter().enumerate() {
                 let back = ff.f.nnz_index(j, i).map(|k| (ff.f.data()[k.0], ff.se[k.0]));
                 let fs = (f, Bar::of(ff.se[lo + k]));
@@ -1586,6 +1771,7 @@ mod tests {
             }
         }
         d.reciprocity_beyond_3se = beyond as f64 / pairs as f64;
+        d.nnz = pairs;
         d
     }
 
@@ -1594,27 +1780,7 @@ mod tests {
         // A full pseudo-random matrix (both triangles, some pairs one-sided) on 4 threads,
         // so that the rows fall into many blocks.
         let n = 300;
-        let mut rows = upper(n, 7);
-        let mut lower = vec![Vec::new(); n];
-        for (i, r) in rows.iter().enumerate() {
-            for (k, e) in r.iter().enumerate() {
-                // Two pairs in three get their reverse entry, slightly off reciprocity.
-                if k % 3 != 0 {
-                    lower[e.j as usize].push(Entry {
-                        j: i as u32,
-                        f: e.f * (1.0 + 1e-3 * (k % 5) as f64),
-                        se: e.se,
-                    });
-                }
-            }
-        }
-        let mut b = CsrBuilder::with_capacity(n, 0);
-        for (r, l) in rows.iter_mut().zip(lower) {
-            r.extend(l);
-            b.push_row(r);
-        }
-        let area: Vec<f64> = (0..n).map(|i| 1.0 + (i % 7) as f64 * 0.1).collect();
-        let ff = b.finish(area, 0, 0.0, "test".into(), 0);
+        let ff = two_sided_test_matrix(n);
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(4)
             .build()
@@ -1643,6 +1809,73 @@ mod tests {
                 )
             );
         }
+    }
+
+    /// A pseudo-random matrix of `n` rows with both triangles, a third of its pairs
+    /// stored one way, the others slightly off reciprocity.
+    fn two_sided_test_matrix(n: usize) -> FormFactors {
+        let mut rows = upper(n, 7);
+        let mut lower = vec![Vec::new(); n];
+        for (i, r) in rows.iter().enumerate() {
+            for (k, e) in r.iter().enumerate() {
+                // Two pairs in three get their reverse entry, slightly off reciprocity.
+                if k % 3 != 0 {
+                    lower[e.j as usize].push(Entry {
+                        j: i as u32,
+                        f: e.f * (1.0 + 1e-3 * (k % 5) as f64),
+                        se: e.se,
+                    });
+                }
+            }
+        }
+        let mut b = CsrBuilder::with_capacity(n, 0);
+        for (r, l) in rows.iter_mut().zip(lower) {
+            r.extend(l);
+            b.push_row(r);
+        }
+        let area: Vec<f64> = (0..n).map(|i| 1.0 + (i % 7) as f64 * 0.1).collect();
+        b.finish(area, 0, 0.0, "test".into(), 0)
+    }
+
+    #[test]
+    fn sampled_reciprocity_checks_every_mth_row_exactly() {
+        // Every row's sum and range; the reciprocity of rows m/2, m/2 + m, ... as a
+        // binary search per entry finds it, on 1 and 3 threads.
+        let n = 300;
+        let ff = two_sided_test_matrix(n);
+        let whole = ff.diagnostics();
+        for budget in [ff.f.nnz() / 7, ff.f.nnz() / 40, 1] {
+            let m = ff.f.nnz().div_ceil(budget).min(n);
+            let want = diagnostics_of_rows_by_search(&ff, |i| i >= m / 2 && (i - m / 2) % m == 0);
+            for threads in [1, 3] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let got = pool.install(|| ff.diagnostics_sampled(budget));
+                assert_eq!(got.reciprocity_rows, (m / 2..n).step_by(m).count());
+                assert!(got.reciprocity_rows < n, "budget {budget}");
+                assert_eq!(got.reciprocity_rows, want.reciprocity_rows);
+                assert_eq!(got.reciprocity, want.reciprocity, "budget {budget}");
+                assert_eq!(got.reciprocity_significant, want.reciprocity_significant);
+                assert_eq!(got.reciprocity_beyond_3se, want.reciprocity_beyond_3se);
+                let head = |d: &Diagnostics| {
+                    (
+                        d.min_row_sum,
+                        d.max_row_sum,
+                        d.max_row,
+                        d.empty_rows,
+                        d.rows_over_one,
+                        d.out_of_range,
+                        d.nnz,
+                    )
+                };
+                assert_eq!(head(&got), head(&whole));
+            }
+        }
+        // The automatic choice checks every pair up to its budget.
+        assert_eq!(ff.diagnostics_with(Reciprocity::Auto), whole);
+        assert_eq!(whole.reciprocity_rows, n);
     }
 
     /// A pseudo-random sparse upper triangle with up to `n` rows.

@@ -16,7 +16,7 @@ use crate::formfactor::{
     self, AreaMc, Context, Estimator, Hemicube, Hemisphere, Nodes, Pattern, SemiAnalytic,
 };
 use crate::hierarchy;
-use crate::matrix::{Diagnostics, FormFactors};
+use crate::matrix::{Diagnostics, FormFactors, Reciprocity};
 use crate::mesh::{PatchSet, Resolution};
 use crate::output::{self, Exposure, FolderKind};
 use crate::repair::{self, Repair, RepairReport};
@@ -133,6 +133,8 @@ pub struct BakeConfig {
     pub steps: Vec<usize>,
     /// Physical constraints to restore in the form factors before solving.
     pub repair: Repair,
+    /// Which stored pairs the diagnostics check for reciprocity.
+    pub reciprocity: Reciprocity,
     /// Solve hierarchically with these settings instead of on the flat patch matrix
     /// ([`crate::hierarchy`]); `resolution` then sets the root patches.
     pub hierarchy: Option<hierarchy::Settings>,
@@ -177,6 +179,7 @@ impl Default for BakeConfig {
             factors: None,
             steps: Vec::new(),
             repair: Repair::None,
+            reciprocity: Reciprocity::Auto,
             hierarchy: None,
             fallback: None,
             max_memory: None,
@@ -692,7 +695,7 @@ fn bake_gathered(
                 let worst = (0..ff.len())
                     .map(|i| ff.row_sum_bar(i))
                     .fold(crate::matrix::Bar::ZERO, crate::matrix::Bar::max);
-                (ff.diagnostics(), worst)
+                (ff.diagnostics_with(cfg.reciprocity), worst)
             },
         )
     });
@@ -989,6 +992,7 @@ pub fn factors_within(
         seed,
         out_dir,
         repair,
+        reciprocity: Reciprocity::Auto,
         format,
         max_memory,
         two_sided,
@@ -1012,6 +1016,8 @@ pub struct FactorsJob<'a> {
     pub out_dir: &'a Path,
     /// Repair after estimation.
     pub repair: Repair,
+    /// Which stored pairs the diagnostics check for reciprocity.
+    pub reciprocity: Reciprocity,
     /// Matrix layout.
     pub format: store::Format,
     /// Memory limit in bytes (`None`: the available memory).
@@ -1071,7 +1077,7 @@ pub fn factors_on(
     // (three large files, then their hashes) leaves cores idle while a file finishes.
     let (diagnostics, provenance) = timer.run("diagnostics and write", 0, || {
         rayon::join(
-            || ff.diagnostics(),
+            || ff.diagnostics_with(job.reciprocity),
             || store::write(job.out_dir, &patches, &ff, job.repair, job.format),
         )
     });
@@ -1149,7 +1155,8 @@ pub fn format_summary(s: &BakeSummary) -> String {
     );
     let _ = writeln!(
         o,
-        "  reciprocity: worst relative gap {:.1e} over factors >= {:.0e}, {:.2}% of pairs beyond 3 std. errors; {} stored factors{}",
+        "  reciprocity{}: worst relative gap {:.1e} over factors >= {:.0e}, {:.2}% of pairs beyond 3 std. errors; {} stored factors{}",
+        d.reciprocity_scope(s.patches),
         d.reciprocity_significant,
         crate::matrix::SIGNIFICANT,
         100.0 * d.reciprocity_beyond_3se,
@@ -1515,7 +1522,8 @@ pub fn thermal(cfg: &ThermalConfig, obs: &dyn Observer) -> Result<ThermalSummary
         &Single,
     )?
     .expect("one process is rank 0");
-    let diagnostics = timer.run("diagnostics", 0, || ff.diagnostics());
+    // Its summary reports row sums, not reciprocity: every pair is not worth checking.
+    let diagnostics = timer.run("diagnostics", 0, || ff.diagnostics_with(Reciprocity::Auto));
     // Surfaces: the materials the patches use, in material order.
     let used: Vec<usize> = (0..patches.materials.len())
         .filter(|&m| patches.material.iter().any(|&k| k as usize == m))

@@ -164,10 +164,11 @@ fn all_diagnostics(
     cluster: &dyn Cluster,
 ) -> Result<Diagnostics> {
     let k = cluster.size();
-    let mut all = vec![0.0; 10 * k];
-    cluster.all_gather_f64(&local.to_numbers(), &vec![10; k], &mut all)?;
+    let m = Diagnostics::NUMBERS;
+    let mut all = vec![0.0; m * k];
+    cluster.all_gather_f64(&local.to_numbers(), &vec![m; k], &mut all)?;
     Ok(all
-        .chunks_exact(10)
+        .chunks_exact(m)
         .map(Diagnostics::from_numbers)
         .fold(Diagnostics::empty(), Diagnostics::merge)
         .finish(nnz, n))
