@@ -711,6 +711,8 @@ pub struct Diagnostics {
     pub out_of_range: usize,
     /// Stored entries.
     pub nnz: usize,
+    /// The largest bars of the row sums ([`sum_bar`]), each part's largest on its own.
+    pub max_row_sum_bar: Bar,
     /// Rows whose stored pairs were checked for reciprocity: every row, or those of evenly
     /// spaced blocks ([`Reciprocity::Auto`]); the three reciprocity figures are over their
     /// pairs.
@@ -1118,12 +1120,14 @@ fn row_reciprocity(
 fn row_head(i: usize, vals: &[f64], ses: &[f32]) -> Diagnostics {
     // `+ 0.0`: the sum of no terms is -0.0, printed `-0.00000` for an empty row.
     let s: f64 = vals.iter().sum::<f64>() + 0.0;
+    let bar = sum_bar(ses);
     Diagnostics {
         min_row_sum: s,
         max_row_sum: s,
         max_row: i,
         empty_rows: usize::from(vals.is_empty()),
-        rows_over_one: usize::from(over_one(s, sum_bar(ses), 3.0)),
+        rows_over_one: usize::from(over_one(s, bar, 3.0)),
+        max_row_sum_bar: bar,
         out_of_range: vals
             .iter()
             .filter(|f| !f.is_finite() || !(0.0..=1.0).contains(*f))
@@ -1176,7 +1180,7 @@ impl Diagnostics {
     }
 
     /// How many numbers [`Diagnostics::to_numbers`] makes.
-    pub const NUMBERS: usize = 11;
+    pub const NUMBERS: usize = 13;
 
     /// The neutral element of [`Diagnostics::merge`].
     pub fn empty() -> Diagnostics {
@@ -1207,6 +1211,7 @@ impl Diagnostics {
             out_of_range: a.out_of_range + b.out_of_range,
             nnz: a.nnz + b.nnz,
             reciprocity_rows: a.reciprocity_rows + b.reciprocity_rows,
+            max_row_sum_bar: a.max_row_sum_bar.max(b.max_row_sum_bar),
         }
     }
 
@@ -1242,6 +1247,8 @@ impl Diagnostics {
             self.out_of_range as f64,
             self.nnz as f64,
             self.reciprocity_rows as f64,
+            self.max_row_sum_bar.se,
+            self.max_row_sum_bar.bound,
         ]
     }
 
@@ -1259,6 +1266,10 @@ impl Diagnostics {
             out_of_range: v[8] as usize,
             nnz: v[9] as usize,
             reciprocity_rows: v[10] as usize,
+            max_row_sum_bar: Bar {
+                se: v[11],
+                bound: v[12],
+            },
         }
     }
 }
@@ -1289,15 +1300,6 @@ impl Block {
     /// One past the last row.
     pub fn hi(&self) -> usize {
         self.lo + self.f.rows()
-    }
-
-    /// The largest bars of the row sums in the block (as [`FormFactors::row_sum_bar`]),
-    /// each part's largest on its own; 0 for no rows.
-    pub fn max_row_sum_bar(&self) -> Bar {
-        let ptr = self.f.indptr().to_proper().into_owned();
-        (0..self.rows())
-            .map(|r| sum_bar(&self.se[ptr[r]..ptr[r + 1]]))
-            .fold(Bar::ZERO, Bar::max)
     }
 }
 

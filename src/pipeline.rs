@@ -234,8 +234,6 @@ pub struct BakeSummary {
     pub estimator: String,
     /// Form-factor diagnostics.
     pub diagnostics: Diagnostics,
-    /// Largest bar of a row sum (each part's largest: [`crate::matrix::Block::max_row_sum_bar`]).
-    pub max_row_sum_bar: crate::matrix::Bar,
     /// Bounds found (rows over 1, entries out of range) and the repair applied.
     pub repair: RepairReport,
     /// Solver report.
@@ -688,15 +686,10 @@ fn bake_gathered(
     };
     // Side by side: the diagnostics are parallel reads of the matrix, and the default
     // solver's sweeps (Gauss-Seidel) are sequential, leaving the other cores idle.
-    let (solved, (diagnostics, max_row_sum_bar)) = timer.run("solve and diagnostics", 0, || {
+    let (solved, diagnostics) = timer.run("solve and diagnostics", 0, || {
         rayon::join(
             || solve_radiosity(&patches, &ff, cfg.method, &cfg.solve),
-            || {
-                let worst = (0..ff.len())
-                    .map(|i| ff.row_sum_bar(i))
-                    .fold(crate::matrix::Bar::ZERO, crate::matrix::Bar::max);
-                (ff.diagnostics_with(cfg.reciprocity), worst)
-            },
+            || ff.diagnostics_with(cfg.reciprocity),
         )
     });
     let (b, report) = solved?;
@@ -728,7 +721,6 @@ fn bake_gathered(
         rays: ff.rays,
         estimator: ff.estimator.clone(),
         diagnostics,
-        max_row_sum_bar,
         repair: repair_report,
         solve: report,
         stages: timer.stages,
@@ -907,7 +899,6 @@ fn bake_hierarchical(
             settings.error, r.min_area, settings.rays, settings.rays
         ),
         diagnostics: Diagnostics::default(),
-        max_row_sum_bar: crate::matrix::Bar::ZERO,
         repair: RepairReport::default(),
         solve,
         stages: timer.stages,
@@ -1149,7 +1140,7 @@ pub fn format_summary(s: &BakeSummary) -> String {
         "  row sums in [{:.5}, {:.5}] (row-sum bar <= {}); {} rows over 1 beyond 3 std. errors plus bounds; {} patches see nothing",
         d.min_row_sum.max(0.0),
         d.max_row_sum,
-        s.max_row_sum_bar,
+        d.max_row_sum_bar,
         d.rows_over_one,
         d.empty_rows
     );

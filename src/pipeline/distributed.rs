@@ -293,21 +293,10 @@ fn bake_rows(
     let bounds = timer.run("repair", 0, || {
         all_bounds(&check_rows(&block.f, &block.se, block.lo), cluster)
     })?;
-    let (diagnostics, max_row_sum_bar) = timer.run("diagnostics", 0, || {
-        let local = block.diagnostics;
+    let diagnostics = timer.run("diagnostics", 0, || {
         let mut nnz = [block.f.nnz() as u64];
         cluster.all_sum_u64(&mut nnz)?;
-        let d = all_diagnostics(local, (nnz[0] as usize, n), cluster)?;
-        let w = block.max_row_sum_bar();
-        let mut worst = [w.se, w.bound];
-        cluster.all_max(&mut worst)?;
-        Ok::<_, Error>((
-            d,
-            Bar {
-                se: worst[0],
-                bound: worst[1],
-            },
-        ))
+        all_diagnostics(block.diagnostics, (nnz[0] as usize, n), cluster)
     })?;
     let traffic0 = cluster.traffic();
     let t = std::time::Instant::now();
@@ -338,7 +327,6 @@ fn bake_rows(
         rays,
         estimator: cfg.estimator.build().name(),
         diagnostics,
-        max_row_sum_bar,
         repair: RepairReport {
             repair: Repair::None,
             after: bounds.clone(),
