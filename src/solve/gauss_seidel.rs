@@ -593,6 +593,16 @@ mod tests {
         }
     }
 
+    /// Asserts `b` is the dense solve's answer of `sys` to 1e-6 relative (1e-9 absolute).
+    fn agrees_with_direct(sys: &System, b: &[[f64; 3]]) {
+        let exact = Direct.solve(sys, &Options::default()).unwrap().0;
+        for (p, q) in b.iter().zip(&exact) {
+            for c in 0..3 {
+                assert!((p[c] - q[c]).abs() <= 1e-6 * q[c].abs().max(1e-3));
+            }
+        }
+    }
+
     #[test]
     fn sor_finds_the_factor_of_bright_furnaces() {
         // Closed furnaces lit by one patch in 37: Gauss-Seidel slows like 1 / (1 - rho);
@@ -614,12 +624,7 @@ mod tests {
                 sor.iterations,
                 gs.iterations
             );
-            let exact = Direct.solve(&sys, &Options::default()).unwrap().0;
-            for (p, q) in b.iter().zip(&exact) {
-                for c in 0..3 {
-                    assert!((p[c] - q[c]).abs() <= 1e-6 * q[c].abs().max(1e-3));
-                }
-            }
+            agrees_with_direct(&sys, &b);
         }
     }
 
@@ -648,12 +653,7 @@ mod tests {
                 plain.iterations
             );
             assert!(two.converged && two.residual <= 1e-8 && two.patch_residual <= 1e-8);
-            let exact = Direct.solve(&sys, &Options::default()).unwrap().0;
-            for (p, q) in b.iter().zip(&exact) {
-                for c in 0..3 {
-                    assert!((p[c] - q[c]).abs() <= 1e-6 * q[c].abs().max(1e-3));
-                }
-            }
+            agrees_with_direct(&sys, &b);
         }
         let dim = furnace(200, [0.8; 3], [1.0; 3]);
         let (_, report) = Sor::AUTO.solve(&dim.sys(), &opts).unwrap();
