@@ -240,6 +240,12 @@ pub(crate) struct Scratch {
     bits: Vec<u64>,
     /// The patches hit in a row, in order.
     hit: Vec<u32>,
+    /// Hits of a row as keys `slot << 32 | r` (misses and the row's own patch left out),
+    /// for scenes whose tallies would not stay in the cache ([`sorts_hits`]), and the
+    /// radix sort's second buffer and histogram.
+    keys: Vec<u64>,
+    sorted: Vec<u64>,
+    histogram: Vec<u32>,
 }
 
 impl Hemisphere {
@@ -257,19 +263,30 @@ impl Hemisphere {
         scratch: &mut Buffers,
     ) {
         let s = &mut scratch.hemisphere;
+        let sorted = sorts_hits(ctx.patches.len(), self.replicates.max(2));
         crate::simd::with_widest(
             #[inline(always)]
-            || self.row_in(ctx, i, row, tracer, s),
+            || self.row_in(ctx, i, row, tracer, s, sorted),
         )
     }
 
+    /// Row `i` as [`Hemisphere::row_with`] makes it, its hits counted in tallies or, when
+    /// `sorted`, sorted.
     #[inline(always)]
-    fn row_in(&self, ctx: &Context, i: usize, row: &mut Row, tracer: &dyn Tracer, s: &mut Scratch) {
+    fn row_in(
+        &self,
+        ctx: &Context,
+        i: usize,
+        row: &mut Row,
+        tracer: &dyn Tracer,
+        s: &mut Scratch,
+        sorted: bool,
+    ) {
         let p = ctx.patches;
         let reps = self.replicates.max(2);
         let st = self.strata.max(1);
         let m = st * st;
-        s.prepare(st, m, p.len(), reps);
+        s.prepare(st, m, p.len(), reps, sorted);
         let n_i = p.normal[i].as_vec3();
         let (t, b) = basis(n_i);
         let off = n_i * ctx.vis.eps();
@@ -284,8 +301,10 @@ impl Hemisphere {
         let n = p.len();
         // Small scenes find the patches hit by a scan of the tallies after the row, at
         // most four words per ray cast (a word scanned costs a few hundredths of a ray
-        // traced); large ones mark them in a bit set as they come.
-        let dense = n <= 4 * m;
+        // traced); larger ones mark them in a bit set as they come; the largest sort
+        // their hits ([`sorts_hits`]) and keep no tallies.
+        let dense = n <= 4 * m && !sorted;
+        let mut nk = 0;
         // One replicate at a time (its buffers stay in the L1 cache next to Embree's).
         for r in 0..reps {
             // Ray k leaves a jittered point of position cell perm[k] in a jittered
@@ -334,7 +353,15 @@ impl Hemisphere {
                 // (or a back side met first) and a hit on patch i itself count in the
                 // spare slot n.
                 let (counts, bits) = (&mut s.counts[..], &mut s.bits[..]);
-                if dense {
+                if sorted {
+                    let keys = &mut s.keys[..];
+                    for &j in &s.hits[..len] {
+                        let jj = (j as usize).min(n);
+                        let slot = if jj != i { jj } else { n };
+                        keys[nk] = (slot as u64) << 32 | r as u64;
+                        nk += (slot != n) as usize;
+                    }
+                } else if dense {
                     for &j in &s.hits[..len] {
                         let jj = (j as usize).min(n);
                         let slot = if jj != i { jj } else { n };
@@ -360,6 +387,43 @@ impl Hemisphere {
             1.0 / (m as f64 * rf),
             1.0 / (rf * rf * (rf - 1.0) * (m as f64).powi(2)),
         );
+        let entry = |j: usize, sum: i64, sq: i64| {
+            let f = sum as f64 * inv_mr;
+            let spread = reps as i64 * sq - sum * sum;
+            Entry {
+                j: j as u32,
+                f,
+                // Replicates that all counted the same hits (one each, say) have no
+                // spread, but a handful of hits does not make the factor exact: the bar
+                // of the fraction of hits then ([`fraction_se`]).
+                se: if spread > 0 {
+                    (spread as f64 * inv_se2).sqrt()
+                } else {
+                    fraction_se(f, m as f64 * rf)
+                },
+            }
+        };
+        if sorted {
+            // The hits sorted by patch (stable: each patch's replicates stay in order), then
+            // counted run by run.
+            let bits = usize::BITS - n.leading_zeros();
+            let keys = radix_sort_high(&mut s.keys, &mut s.sorted, &mut s.histogram, nk, bits);
+            let mut k = 0;
+            while k < nk {
+                let j = keys[k] >> 32;
+                let (mut sum, mut sq) = (0i64, 0i64);
+                while k < nk && keys[k] >> 32 == j {
+                    let (key, from) = (keys[k], k);
+                    while k < nk && keys[k] == key {
+                        k += 1;
+                    }
+                    let c = (k - from) as i64;
+                    (sum, sq) = (sum + c, sq + c * c);
+                }
+                row.entries.push(entry(j as usize, sum, sq));
+            }
+            return;
+        }
         // The patches hit, in order (the spare slot n is none): by a scan of the tallies,
         // or from the bit set.
         let mut hit = 0;
@@ -388,24 +452,61 @@ impl Hemisphere {
                 let v = std::mem::take(c) as i64;
                 (sum, sq) = (sum + v, sq + v * v);
             }
-            let f = sum as f64 * inv_mr;
-            let spread = reps as i64 * sq - sum * sum;
-            Entry {
-                j: j as u32,
-                f,
-                // Replicates that all counted the same hits (one each, say) have no
-                // spread, but a handful of hits does not make the factor exact: the bar
-                // of the fraction of hits then ([`fraction_se`]).
-                se: if spread > 0 {
-                    (spread as f64 * inv_se2).sqrt()
-                } else {
-                    fraction_se(f, m as f64 * rf)
-                },
-            }
+            entry(j, sum, sq)
         }));
         s.counts[n * reps..(n + 1) * reps].fill(0);
     }
 }
+
+/// Size of a row's tallies (`(n + 1) R` counters) above which the row sorts its hits
+/// instead of counting them in the table: the table then no longer stays in a core's
+/// level-2 cache next to Embree's data, and every hit missed it twice, counted and read
+/// back (docs/PERFORMANCE.md, section 1, *Hemisphere shooting: sorted hits at scale*).
+const SORTED_TALLY_BYTES: usize = 256 << 10;
+
+/// Whether rows of a scene of `n` patches and `reps` replicates sort their hits.
+fn sorts_hits(n: usize, reps: usize) -> bool {
+    (n + 1) * reps * std::mem::size_of::<u32>() > SORTED_TALLY_BYTES
+}
+
+/// Sorts `keys[..len]` by their bits `32..32 + bits` (a least-significant-digit radix sort,
+/// stable), with `tmp` and `histogram` as scratch; returns the sorted keys (in `keys` or
+/// in `tmp`).
+fn radix_sort_high<'a>(
+    keys: &'a mut [u64],
+    tmp: &'a mut [u64],
+    histogram: &mut Vec<u32>,
+    len: usize,
+    bits: u32,
+) -> &'a [u64] {
+    let passes = bits.div_ceil(RADIX_BITS).max(1);
+    let width = bits.div_ceil(passes);
+    let buckets = 1usize << width;
+    histogram.resize(buckets, 0);
+    let (mut from, mut to) = (&mut keys[..len], &mut tmp[..len]);
+    for pass in 0..passes {
+        let shift = 32 + pass * width;
+        let mask = (buckets - 1) as u64;
+        histogram.fill(0);
+        for &k in from.iter() {
+            histogram[((k >> shift) & mask) as usize] += 1;
+        }
+        let mut at = 0;
+        for h in histogram.iter_mut() {
+            (*h, at) = (at, at + *h);
+        }
+        for &k in from.iter() {
+            let b = &mut histogram[((k >> shift) & mask) as usize];
+            to[*b as usize] = k;
+            *b += 1;
+        }
+        std::mem::swap(&mut from, &mut to);
+    }
+    from
+}
+
+/// Digit width of [`radix_sort_high`]'s passes, at most: a histogram of 4 KB.
+const RADIX_BITS: u32 = 10;
 
 /// World-space rays from local points `x` and local directions `d` (frame `(t, b, n)`,
 /// z along the normal): origins pulled toward the centroid by [`PULL`] and offset by
@@ -439,13 +540,19 @@ fn world(
 
 impl Scratch {
     /// Sizes the buffers for `len` rays (one replicate), `st x st` strata per replicate,
-    /// `reps` replicates and a scene of `n` patches.
-    fn prepare(&mut self, st: usize, len: usize, n: usize, reps: usize) {
-        // Sized exactly: the end of the row walks the whole bit set.
-        self.bits.resize((n + 1).div_ceil(64), 0);
-        self.hit.resize(n + 1, 0);
-        if self.counts.len() < (n + 1) * reps {
-            self.counts.resize((n + 1) * reps, 0);
+    /// `reps` replicates and a scene of `n` patches, whose rows count their hits in
+    /// tallies or, when `sorted`, sort them.
+    fn prepare(&mut self, st: usize, len: usize, n: usize, reps: usize, sorted: bool) {
+        if sorted {
+            self.keys.resize(len * reps, 0);
+            self.sorted.resize(len * reps, 0);
+        } else {
+            // Sized exactly: the end of the row walks the whole bit set.
+            self.bits.resize((n + 1).div_ceil(64), 0);
+            self.hit.resize(n + 1, 0);
+            if self.counts.len() < (n + 1) * reps {
+                self.counts.resize((n + 1) * reps, 0);
+            }
         }
         if self.cells_of != st {
             let [c0, c1] = &mut self.cells;
@@ -497,6 +604,42 @@ impl Scratch {
 mod tests {
     use super::*;
     use crate::sampling::Pcg32;
+
+    /// The three ways a row finds its entries (a scan of the tallies, a bit set of the
+    /// patches hit, sorted hits) give the same entries, bit for bit.
+    #[test]
+    fn sorted_hits_give_the_tallies_entries() {
+        use crate::formfactor::Context;
+        use crate::mesh::{PatchSet, Resolution};
+        use crate::scene::Scene;
+        use crate::visibility::Visibility;
+        let scene = Scene::load("cornell").unwrap();
+        let patches = PatchSet::build(&scene, Resolution::Patches(500)).unwrap();
+        let vis = Visibility::new(&patches).unwrap();
+        let ctx = Context {
+            patches: &patches,
+            vis: &vis,
+            seed: 11,
+        };
+        let n = patches.len();
+        let mut s = Scratch::default();
+        // 4 x 4 strata: n > 4 m, the bit set; 16 x 16: n <= 4 m, the scan.
+        for (strata, replicates) in [(4, 2), (4, 3), (16, 4)] {
+            let est = Hemisphere { strata, replicates };
+            assert_eq!(n <= 4 * strata * strata, strata == 16, "{n}");
+            let mut entries = 0;
+            for i in (0..n).step_by(7) {
+                let (mut tallied, mut sorted) = (Row::default(), Row::default());
+                est.row_in(&ctx, i, &mut tallied, &vis, &mut s, false);
+                est.row_in(&ctx, i, &mut sorted, &vis, &mut s, true);
+                assert_eq!(tallied.entries, sorted.entries, "row {i}, {strata} strata");
+                assert_eq!(tallied.rays, sorted.rays);
+                entries += sorted.entries.len();
+            }
+            assert!(entries > n, "{entries}");
+        }
+        assert!(!sorts_hits(n, 4) && sorts_hits(100_000, 4));
+    }
 
     #[test]
     fn f32_directions_match_the_f64_map() {
