@@ -27,8 +27,8 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::{
-    check_diagonal, check_finite, check_patches, divergence, diverging, finish, gather_row, jacobi,
-    max3, worst, Floor, Gain, Options, Outcome, Rows, Scale, SolveReport,
+    check_matrix, check_patches, divergence, diverging, finish, gather_row, jacobi, max3, worst,
+    Floor, Gain, Options, Outcome, Rows, Scale, SolveReport,
 };
 use crate::cluster::{in_pool, Cluster};
 use crate::error::{Error, Result};
@@ -70,9 +70,8 @@ impl BlockSystem<'_> {
                 self.lo + self.f.rows()
             )));
         }
-        check_finite(self.f, self.lo)?;
         check_patches(self.rho, self.emit, self.area)?;
-        check_diagonal(self.f, self.lo, self.rho)
+        check_matrix(self.f, self.lo, self.rho)
     }
 }
 

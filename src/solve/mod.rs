@@ -197,23 +197,9 @@ impl<'a> System<'a> {
                 mismatched.join(", ")
             )));
         }
-        check_finite(f, 0)?;
         check_patches(self.rho, self.emit, self.area)?;
-        check_diagonal(f, 0, self.rho)
+        check_matrix(f, 0, self.rho)
     }
-}
-
-/// Refuses a non-finite entry of `f`, whose rows are the matrix's rows `lo..`.
-pub(crate) fn check_finite(f: &Csr, lo: usize) -> Result<()> {
-    for (r, row) in f.outer_iterator().enumerate() {
-        if let Some((j, v)) = row.iter().find(|(_, v)| !v.is_finite()) {
-            return Err(Error::Config(format!(
-                "F[{}, {j}] = {v} is not finite",
-                lo + r
-            )));
-        }
-    }
-    Ok(())
 }
 
 /// Refuses reflectances, emissions or areas [`System::new`] refuses.
@@ -251,12 +237,21 @@ pub(crate) fn check_patches(rho: &[[f64; 3]], emit: &[[f64; 3]], area: &[f64]) -
     Ok(())
 }
 
-/// Refuses a patch that would reflect onto itself all it receives (`rho_i F_ii >= 1`);
-/// `f`'s rows are the matrix's rows `lo..`, `rho` of every patch.
-pub(crate) fn check_diagonal(f: &Csr, lo: usize, rho: &[[f64; 3]]) -> Result<()> {
-    for r in 0..f.rows() {
+/// Refuses a non-finite entry of `f`, and a patch that would reflect onto itself all it
+/// receives (`rho_i F_ii >= 1`), in one pass over the rows; `f`'s rows are the matrix's rows
+/// `lo..`, `rho` of every patch (checked finite before: [`check_patches`]).
+pub(crate) fn check_matrix(f: &Csr, lo: usize, rho: &[[f64; 3]]) -> Result<()> {
+    for (r, row) in f.outer_iterator().enumerate() {
         let i = lo + r;
-        let fii = f.get(r, i).copied().unwrap_or(0.0);
+        let mut fii = 0.0;
+        for (j, &v) in row.iter() {
+            if !v.is_finite() {
+                return Err(Error::Config(format!("F[{i}, {j}] = {v} is not finite")));
+            }
+            if j == i {
+                fii = v;
+            }
+        }
         let worst = rho[i].iter().fold(0.0f64, |m, r| m.max(r * fii));
         if worst >= 1.0 {
             return Err(Error::Config(format!(
