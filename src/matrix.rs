@@ -950,7 +950,7 @@ impl FormFactors {
                     .flat_map(|(b, (_, start))| &b[start[t]..start[t + 1]]);
                 let mut next = mine.next();
                 let row = (&idx[lo..hi], &val[lo..hi], &se[lo..hi]);
-                row_reciprocity(i, row, &self.area, |_, j| {
+                row_reciprocity(i, row, &self.area, Bar::se(self.unresolved), |_, j| {
                     // Back entries before column j have no entry of their own in row i.
                     while next.is_some_and(|b| (b.j as usize) < j) {
                         next = mine.next();
@@ -1015,7 +1015,9 @@ impl FormFactors {
         let (mut pairs, mut beyond) = (0usize, 0usize);
         let mut pair = |d: &mut Diagnostics, i: usize, k: usize, back: Option<(f64, f32)>| {
             let (j, f) = (idx[k] as usize, val[k]);
-            if let Some(b) = reciprocity_of(&self.area, (i, j), (f, Bar::of(se[k])), back, d) {
+            let unhit = Bar::se(self.unresolved);
+            if let Some(b) = reciprocity_of(&self.area, (i, j), (f, Bar::of(se[k])), back, unhit, d)
+            {
                 pairs += 1;
                 beyond += usize::from(b);
             }
@@ -1084,11 +1086,12 @@ fn row_diagnostics(
     i: usize,
     (cols, vals, ses): (&[u32], &[f64], &[f32]),
     area: &[f64],
+    unhit: Bar,
     back: impl FnMut(usize, usize) -> Option<(f64, f32)>,
 ) -> Diagnostics {
     Diagnostics::merge(
         row_head(i, vals, ses),
-        row_reciprocity(i, (cols, vals, ses), area, back),
+        row_reciprocity(i, (cols, vals, ses), area, unhit, back),
     )
 }
 
@@ -1097,13 +1100,15 @@ fn row_reciprocity(
     i: usize,
     (cols, vals, ses): (&[u32], &[f64], &[f32]),
     area: &[f64],
+    unhit: Bar,
     mut back: impl FnMut(usize, usize) -> Option<(f64, f32)>,
 ) -> Diagnostics {
     let mut d = Diagnostics::empty();
     let (mut pairs, mut beyond) = (0usize, 0usize);
     for (k, ((&j, &f), &se_ij)) in cols.iter().zip(vals).zip(ses).enumerate() {
         let j = j as usize;
-        if let Some(b) = reciprocity_of(area, (i, j), (f, Bar::of(se_ij)), back(k, j), &mut d) {
+        let fs = (f, Bar::of(se_ij));
+        if let Some(b) = reciprocity_of(area, (i, j), fs, back(k, j), unhit, &mut d) {
             pairs += 1;
             beyond += usize::from(b);
         }
@@ -1137,18 +1142,26 @@ fn row_head(i: usize, vals: &[f64], ses: &[f32]) -> Diagnostics {
 }
 
 /// Folds the reciprocity gap `|A_i F_ij - A_j F_ji|` of the stored entry `F_ij = f`
-/// (bar `se_ij`), whose back entry `F_ji` is `back` (`None`: not stored, 0), into
-/// `d.reciprocity` and `d.reciprocity_significant`. Returns `None` when both sides are 0,
-/// else whether the gap is beyond 3 combined bars (standard errors in quadrature, bounds
-/// linearly: [`Bar::plus`]).
+/// (bar `se_ij`), whose back entry `F_ji` is `back` (`None`: not stored, 0 with the bar
+/// `unhit` of an entry not stored, [`FormFactors::unresolved`]), into `d.reciprocity` and
+/// `d.reciprocity_significant`. Returns `None` when both sides are 0, else whether the gap
+/// is beyond 3 combined bars (standard errors in quadrature, bounds linearly:
+/// [`Bar::plus`]).
+///
+/// A back entry not stored is one no ray hit: its truth is at least 0, so the gap
+/// `A_i F_ij > 0` is exactly the side its one-sided bar covers. Without that bar a pair
+/// hit from one side only would be judged as if the other side were known to be 0: at
+/// 1,024 rays a patch, a factor hit once in each of three replicates sits at exactly
+/// 3 standard errors, beyond them or not by rounding.
 fn reciprocity_of(
     area: &[f64],
     (i, j): (usize, usize),
     (f, se_ij): (f64, Bar),
     back: Option<(f64, f32)>,
+    unhit: Bar,
     d: &mut Diagnostics,
 ) -> Option<bool> {
-    let (f_back, se_ji) = back.map_or((0.0, Bar::ZERO), |(f, s)| (f, Bar::of(s)));
+    let (f_back, se_ji) = back.map_or((0.0, unhit), |(f, s)| (f, Bar::of(s)));
     let fij = area[i] * f;
     let fji = area[j] * f_back;
     let m = fij.abs().max(fji.abs());
@@ -1446,11 +1459,12 @@ impl<'a> BlockBuilder<'a> {
         self.back[k] = back;
     }
 
-    /// The block, with its diagnostics from the back entries (which are then dropped).
+    /// The block, with its diagnostics from the back entries (which are then dropped);
+    /// `unresolved` is the bar of an entry not stored ([`FormFactors::unresolved`]).
     ///
     /// # Panics
     /// When fewer entries came than were counted.
-    pub fn finish(mut self) -> Block {
+    pub fn finish(mut self, unresolved: f64) -> Block {
         use rayon::prelude::*;
         if self.indptr.is_empty() {
             self.allocate();
@@ -1483,7 +1497,7 @@ impl<'a> BlockBuilder<'a> {
             .map(|r| {
                 let (a, b) = (indptr[r], indptr[r + 1]);
                 let row = (&ind[a..b], &val[a..b], &se[a..b]);
-                row_diagnostics(lo + r, row, area, |k, _| {
+                row_diagnostics(lo + r, row, area, Bar::se(unresolved), |k, _| {
                     let (f, s) = back[a + k];
                     (!f.is_nan()).then_some((f, s))
                 })
@@ -1576,6 +1590,51 @@ mod tests {
             refused += usize::from(ff.row_over_one_beyond_chance().is_some());
         }
         refused
+    }
+
+    /// A pair stored one way only is judged with the bar of an entry not stored on the
+    /// other side: 3.5 standard errors from 0 is beyond 3 bars when the missing side is
+    /// taken as exactly 0, within them with the bar of a fraction no ray hit (about 0.71
+    /// of a hit at N rays a row).
+    #[test]
+    fn reciprocity_counts_the_bar_of_a_back_entry_not_stored() {
+        let rays = 1024.0;
+        let hit = 1.0 / rays;
+        let ff = |unresolved: f64| {
+            let rows = vec![
+                vec![Entry {
+                    j: 1,
+                    f: 3.5 * hit,
+                    se: hit,
+                }],
+                vec![Entry {
+                    j: 2,
+                    f: 0.5,
+                    se: 0.01,
+                }],
+                vec![Entry {
+                    j: 1,
+                    f: 0.5,
+                    se: 0.01,
+                }],
+            ];
+            let mut ff = FormFactors::from_rows(rows, vec![1.0; 3], 0, 0.0, "t".into(), 0);
+            ff.unresolved = unresolved;
+            ff
+        };
+        let unhit = crate::sampling::fraction_se(0.0, rays);
+        assert!(unhit > 0.7 * hit && unhit < 0.72 * hit, "{unhit}");
+        let as_zero = ff(0.0).diagnostics();
+        assert!((as_zero.reciprocity_beyond_3se - 1.0 / 3.0).abs() < 1e-12);
+        for which in [Reciprocity::All, Reciprocity::Auto] {
+            let d = ff(unhit).diagnostics_with(which);
+            assert_eq!(d.reciprocity_beyond_3se, 0.0, "{which:?}");
+            assert_eq!(d.reciprocity, as_zero.reciprocity);
+        }
+        // 4 hits are beyond either way.
+        let mut four = ff(unhit);
+        four.f.data_mut()[0] = 4.0 * hit;
+        assert!((four.diagnostics().reciprocity_beyond_3se - 1.0 / 3.0).abs() < 1e-12);
     }
 
     #[test]
@@ -1766,7 +1825,8 @@ mod tests {
             for (k, (j, &f)) in row.iter().enumerate() {
                 let back = ff.f.nnz_index(j, i).map(|k| (ff.f.data()[k.0], ff.se[k.0]));
                 let fs = (f, Bar::of(ff.se[lo + k]));
-                if let Some(b) = reciprocity_of(&ff.area, (i, j), fs, back, &mut d) {
+                let unhit = Bar::se(ff.unresolved);
+                if let Some(b) = reciprocity_of(&ff.area, (i, j), fs, back, unhit, &mut d) {
                     pairs += 1;
                     beyond += usize::from(b);
                 }

@@ -432,7 +432,8 @@ pub fn compute(
         b.fill(i, &entries);
     }
     drop(got);
-    let block = in_pool(cluster.compute_pool(), || b.finish());
+    let unresolved = est.unresolved();
+    let block = in_pool(cluster.compute_pool(), || b.finish(unresolved));
     report.assembly_seconds = t.elapsed().as_secs_f64();
     let share = Share::Block(block, all_rays);
     let tr: Traffic = cluster.traffic() - traffic0;
