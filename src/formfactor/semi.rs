@@ -695,6 +695,67 @@ mod tests {
         (got - want).abs() / want
     }
 
+    /// At the area estimators' loose tolerance the near pairs' integrals take the cheaper
+    /// path ([`super::super::exact`]'s `LOOSE`): each lies within its bound of the same
+    /// integral to 1e-9, on every near pair of the Cornell box (walls meeting at edges,
+    /// the blocks standing on the floor across its patches), and the path spends fewer
+    /// point factors than the tight one.
+    /// The deterministic bounds of the near pairs' integrals at the area estimators' loose
+    /// tolerance (1e-2): on every near pair of the Cornell box at 400 patches (walls meeting
+    /// at edges, the blocks standing on the floor across its patches), each integral must
+    /// lie within its bound (plus the reference's 1e-9) of the same integral to 1e-9.
+    ///
+    /// It does not yet: 43 of the 855 near pairs are off by 1.15 to 7.3 times their bound
+    /// (69 at the semi estimator's 1e-6, up to 28.5 times; docs/ESTIMATORS.md, *Near
+    /// pairs' bounds*), hence ignored until the quadrature's a-posteriori error estimate is
+    /// made conservative where its rate assumption fails. Run it with
+    /// `cargo test --release --lib loose_near_pairs -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "known: some loose-tolerance near-pair bounds are too narrow"]
+    fn loose_near_pairs_are_within_their_bounds() {
+        let scene = Scene::load("cornell").unwrap();
+        let p = PatchSet::build(&scene, Resolution::Patches(400)).unwrap();
+        let (loose, tight) = (
+            SemiAnalytic::default().with_tol(1e-2),
+            SemiAnalytic::default().with_tol(1e-9),
+        );
+        let tol = p.plane_tol();
+        let (mut pairs, mut outside, mut worst) = (0, 0, 0.0f64);
+        for a in 0..p.len() {
+            let (ca, ka) = corners(&p, a);
+            for b in a + 1..p.len() {
+                let (cb, kb) = corners(&p, b);
+                let facing = plane_range(&p, a, b).1 > tol && plane_range(&p, b, a).1 > tol;
+                if !facing || !super::super::area::near(&p, (a, &ca[..ka]), (b, &cb[..kb])) {
+                    continue;
+                }
+                let (e, r) = if p.area[b] < p.area[a] {
+                    (b, a)
+                } else {
+                    (a, b)
+                };
+                let got = loose.exact_pair(&p, e, r, None);
+                let want = tight.exact_pair(&p, e, r, None);
+                let off = (got.value - want.value).abs();
+                let allowed = got.err + want.err + 1e-9 * want.value.abs();
+                pairs += 1;
+                if off > allowed {
+                    outside += 1;
+                    worst = worst.max(off / allowed);
+                    eprintln!(
+                        "pair ({a}, {b}): {} ± {:.2e} ({} point factors) against {} ± {:.2e}",
+                        got.value, got.err, got.evals, want.value, want.err
+                    );
+                }
+            }
+        }
+        assert!(pairs > 800, "{pairs} near pairs");
+        assert_eq!(
+            outside, 0,
+            "{outside} of {pairs} near pairs outside their bounds, by up to {worst:.2}x"
+        );
+    }
+
     #[test]
     fn plates_match_closed_forms() {
         let est = SemiAnalytic::new(Nodes::Gauss, 12, 4, 2);
