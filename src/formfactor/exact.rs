@@ -34,7 +34,9 @@
 //!   directly, so no node falls on the boundary by rounding. Before it, Gauss orders 8,
 //!   12 and 16 are tried (they settle neighbours meeting at right angles). Neither rule's
 //!   difference bounds the error where the integrand has a kink inside the piece (a block
-//!   standing across a floor patch): there the rules converge only algebraically, so the
+//!   standing across a floor patch) or is nearly singular (a corner just off the
+//!   receiver): there the rules converge only algebraically, so unless the caller knows
+//!   the two patches meet only along whole edges or at corners ([`Contact`]), the
 //!   reported error of a near piece is at least its own tolerance.
 //! - A piece that meets neither rule's tolerance is split into four (up to a fixed depth)
 //!   and each quarter is integrated to a quarter of the tolerance.
@@ -160,6 +162,101 @@ pub struct Receiver<'a> {
     pub normal: DVec3,
     /// A point of the plane (the centroid).
     pub centroid: DVec3,
+}
+
+/// How an emitter meets its receiver, as far as the integrand's smoothness goes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Contact {
+    /// Touching only along whole shared edges or at shared corners: the integrand is
+    /// smooth up to the contact, and the difference of two rules bounds the error of the
+    /// higher one.
+    Smooth,
+    /// Touching where a contact ends inside an edge (a block standing across a floor
+    /// patch), clipped by the receiver's plane, apart (a piece near its receiver without
+    /// touching it is nearly singular: a block's corner 1.4 from a floor patch 80 wide),
+    /// or not known: the near rules may converge only algebraically, and a near piece
+    /// reports at least its own tolerance as its error. (Far pieces, whose Gauss order is
+    /// chosen a priori, are unaffected.)
+    Kinked,
+}
+
+/// [`Contact`] of the emitter polygon `e` and the receiver polygon `r`, both convex, each
+/// with its plane (unit normal, a point); `Kinked` when either is not planar to `tol` or
+/// they are more than `tol` apart.
+pub fn contact(
+    e: &[DVec3],
+    plane_e: (DVec3, DVec3),
+    r: &[DVec3],
+    plane_r: (DVec3, DVec3),
+    tol: f64,
+) -> Contact {
+    let planar =
+        |poly: &[DVec3], (n, c): (DVec3, DVec3)| poly.iter().all(|&x| n.dot(x - c).abs() <= tol);
+    if !planar(e, plane_e)
+        || !planar(r, plane_r)
+        || polygon_distance(e, r) > tol
+        || ends_inside(e, r, plane_r, tol)
+        || ends_inside(r, e, plane_e, tol)
+    {
+        Contact::Kinked
+    } else {
+        Contact::Smooth
+    }
+}
+
+/// Whether polygon `a` touches polygon `b` (plane: unit normal `n_b`, point `c_b`) other than along whole
+/// edges of both or at corners of both: an edge of `a` in `b`'s plane that overlaps `b`
+/// only in part or along no edge of `b`, or a corner of `a` on `b` that is not one of
+/// `b`'s.
+fn ends_inside(a: &[DVec3], b: &[DVec3], (n_b, c_b): (DVec3, DVec3), tol: f64) -> bool {
+    let off = |x: DVec3| n_b.dot(x - c_b).abs() <= tol;
+    let corner_of_b = |x: DVec3| b.iter().any(|&c| (c - x).length() <= tol);
+    for k in 0..a.len() {
+        let (p, q) = (a[k], a[(k + 1) % a.len()]);
+        if off(p) && inside(p, b, n_b, tol) && !corner_of_b(p) {
+            return true;
+        }
+        if off(p) && off(q) {
+            if let Some((t0, t1)) = clip_segment(p, q, b, n_b, tol) {
+                let len = (q - p).length();
+                let whole = t0 * len <= tol && (1.0 - t1) * len <= tol;
+                if !(whole && corner_of_b(p) && corner_of_b(q)) {
+                    return true;
+                }
+            }
+        }
+    }
+    false
+}
+
+/// Whether `x` (in the plane of the convex polygon `poly`, unit normal `n`) lies inside
+/// it or within `tol` of it.
+fn inside(x: DVec3, poly: &[DVec3], n: DVec3, tol: f64) -> bool {
+    (0..poly.len()).all(|k| {
+        let (a, b) = (poly[k], poly[(k + 1) % poly.len()]);
+        n.cross(b - a).normalize_or_zero().dot(x - a) >= -tol
+    })
+}
+
+/// The parameter interval of the segment `p → q` (in the plane of the convex polygon
+/// `poly`, unit normal `n`) inside the polygon grown by `tol` (Cyrus–Beck), if longer than
+/// `tol`.
+fn clip_segment(p: DVec3, q: DVec3, poly: &[DVec3], n: DVec3, tol: f64) -> Option<(f64, f64)> {
+    let (mut t0, mut t1) = (0.0f64, 1.0f64);
+    for k in 0..poly.len() {
+        let (a, b) = (poly[k], poly[(k + 1) % poly.len()]);
+        let inward = n.cross(b - a).normalize_or_zero();
+        let (dp, dq) = (inward.dot(p - a) + tol, inward.dot(q - a) + tol);
+        if dp < 0.0 && dq < 0.0 {
+            return None;
+        }
+        if dp < 0.0 {
+            t0 = t0.max(dp / (dp - dq));
+        } else if dq < 0.0 {
+            t1 = t1.min(dp / (dp - dq));
+        }
+    }
+    ((t1 - t0) * (q - p).length() > tol).then_some((t0, t1))
 }
 
 /// What [`integrate`] returns: `∫ F(x → P_r) dA_x`, a bound on its error (the quadrature
@@ -479,10 +576,16 @@ pub fn integrate(
     r: &Receiver,
     tol_rel: f64,
     abs_floor: f64,
+    contact: &dyn Fn() -> Contact,
 ) -> Integral {
     let mut evals = 0u64;
     let tol_rel = tol_rel.max(1e-15);
-    let mut out = integrate_piece(emitter, n_e, r, tol_rel, None, abs_floor, 0, &mut evals);
+    // Asked only where a near rule runs: most pieces are far.
+    let kinked = std::cell::OnceCell::new();
+    let floor = || *kinked.get_or_init(|| contact() == Contact::Kinked);
+    let mut out = integrate_piece(
+        emitter, n_e, r, tol_rel, None, abs_floor, &floor, 0, &mut evals,
+    );
     out.evals = evals;
     out.err += out.value.abs() * rounding(emitter, r, evals);
     out
@@ -548,6 +651,7 @@ fn integrate_piece(
     tol_rel: f64,
     tol_abs: Option<f64>,
     abs_floor: f64,
+    floor: &dyn Fn() -> bool,
     depth: u32,
     evals: &mut u64,
 ) -> Integral {
@@ -564,7 +668,13 @@ fn integrate_piece(
     // A near piece's least reported error: the relative tolerance of its own value (not
     // the caller's absolute floor, which the hierarchy sets to a share of a link's
     // tolerance and would make every touching link report that share).
-    let own = |estimate: f64| tol_rel * estimate.abs();
+    let own = |estimate: f64| {
+        if floor() {
+            tol_rel * estimate.abs()
+        } else {
+            0.0
+        }
+    };
     let mut best: Option<Integral> = None;
     if let Some((m0, rho)) = gauss_order(delta, tol_rel) {
         // Far: Gauss from the a-priori order up, one order at a time, each rule checked
@@ -605,7 +715,8 @@ fn integrate_piece(
         // fails fast elsewhere. Where it does not suffice the rule converges only
         // algebraically, and the difference is no bound (on the Cornell box's near pairs
         // it was up to 13 times too small for 15 of 855 pairs; the values themselves were
-        // within the tolerance): the reported error is at least the piece's own tolerance.
+        // within the tolerance): unless the contact is smooth ([`Contact`]), the reported
+        // error is at least the piece's own tolerance.
         let mut lo = em.gauss([NEAR_ORDERS[0]], n_e, r, evals)[0];
         for &m in &NEAR_ORDERS[1..] {
             let hi = em.gauss([m], n_e, r, evals)[0];
@@ -689,6 +800,7 @@ fn integrate_piece(
             tol_rel,
             Some(quarter),
             abs_floor,
+            floor,
             depth + 1,
             evals,
         );
@@ -757,7 +869,9 @@ mod tests {
             normal: y,
             centroid: DVec3::new(0.5, 0.0, 0.5),
         };
-        let got = integrate(&mut Emitter::new(emit), z, &r, 1e-12, 0.0);
+        let got = integrate(&mut Emitter::new(emit), z, &r, 1e-12, 0.0, &|| {
+            Contact::Smooth
+        });
         let want = perpendicular_rectangles(1.0, 1.0, 1.0);
         assert!((got.value - want).abs() < 1e-11, "{got:?} vs {want}");
         assert!(
@@ -771,7 +885,9 @@ mod tests {
             normal: -z,
             centroid: DVec3::new(0.5, 0.5, 1.0),
         };
-        let got = integrate(&mut Emitter::new(emit), z, &r, 1e-12, 0.0);
+        let got = integrate(&mut Emitter::new(emit), z, &r, 1e-12, 0.0, &|| {
+            Contact::Smooth
+        });
         let want = parallel_rectangles(1.0, 1.0, 1.0);
         assert!((got.value - want).abs() < 1e-12, "{got:?} vs {want}");
     }
@@ -819,6 +935,71 @@ mod tests {
     /// of different widths: the integral over either plate must agree (reciprocity,
     /// `A_1 F_12 = A_2 F_21`), within the sum of the two error estimates, which must be
     /// small.
+    /// How patches meet: along a whole shared edge or at a shared corner, smooth; a block
+    /// standing across a floor patch, a corner on an edge's middle, a partly shared edge,
+    /// a warped patch or patches apart, kinked.
+    #[test]
+    fn contacts_are_classified() {
+        let (z, y) = (DVec3::Z, DVec3::Y);
+        let floor = [DVec3::ZERO, DVec3::X, DVec3::new(1.0, 0.0, -1.0), -z];
+        let floor_plane = (y, DVec3::new(0.5, 0.0, -0.5));
+        // A wall over the floor's edge z = 0: along x from a to b, up to height 1.
+        let wall = |a: f64, b: f64| {
+            let w = [
+                DVec3::new(a, 0.0, 0.0),
+                DVec3::new(a, 1.0, 0.0),
+                DVec3::new(b, 1.0, 0.0),
+                DVec3::new(b, 0.0, 0.0),
+            ];
+            (w, (-z, DVec3::new((a + b) / 2.0, 0.5, 0.0)))
+        };
+        let kind = |(w, plane): ([DVec3; 4], (DVec3, DVec3))| {
+            let one = contact(&w, plane, &floor, floor_plane, 1e-9);
+            assert_eq!(
+                one,
+                contact(&floor, floor_plane, &w, plane, 1e-9),
+                "symmetric"
+            );
+            one
+        };
+        assert_eq!(kind(wall(0.0, 1.0)), Contact::Smooth, "whole edge");
+        assert_eq!(kind(wall(1.0, 2.0)), Contact::Smooth, "a shared corner");
+        assert_eq!(kind(wall(2.0, 3.0)), Contact::Kinked, "apart, in line");
+        assert_eq!(kind(wall(0.25, 0.75)), Contact::Kinked, "inside the edge");
+        assert_eq!(kind(wall(0.5, 1.5)), Contact::Kinked, "half on the edge");
+        assert_eq!(kind(wall(-0.5, 1.5)), Contact::Kinked, "over the edge");
+        // A block's face standing across the floor patch, away from its edges.
+        let across = [
+            DVec3::new(0.2, 0.0, -0.5),
+            DVec3::new(0.2, 1.0, -0.5),
+            DVec3::new(0.8, 1.0, -0.5),
+            DVec3::new(0.8, 0.0, -0.5),
+        ];
+        let plane = (-z, DVec3::new(0.5, 0.5, -0.5));
+        assert_eq!(
+            contact(&across, plane, &floor, floor_plane, 1e-9),
+            Contact::Kinked
+        );
+        // A corner touching the middle of the floor's edge.
+        let tilted = [
+            DVec3::new(0.5, 0.0, 0.0),
+            DVec3::new(0.0, 1.0, 0.5),
+            DVec3::new(1.0, 1.0, 0.5),
+        ];
+        let n = (tilted[1] - tilted[0])
+            .cross(tilted[2] - tilted[0])
+            .normalize();
+        let c = (tilted[0] + tilted[1] + tilted[2]) / 3.0;
+        assert_eq!(
+            contact(&tilted, (n, c), &floor, floor_plane, 1e-9),
+            Contact::Kinked
+        );
+        // Warped beyond the tolerance.
+        let mut warped = wall(0.0, 1.0);
+        warped.0[1].z += 1e-6;
+        assert_eq!(kind(warped), Contact::Kinked, "warped");
+    }
+
     #[test]
     fn angled_shared_edge_is_reciprocal() {
         let (x, s) = (DVec3::X, std::f64::consts::FRAC_1_SQRT_2);
@@ -827,6 +1008,8 @@ mod tests {
         let b = [DVec3::ZERO, t, t + x, x];
         let (na, nb) = (DVec3::Z, DVec3::new(0.0, s, s));
         let centre = |p: &[DVec3; 4]| p.iter().copied().sum::<DVec3>() / 4.0;
+        let meet = contact(&a, (na, centre(&a)), &b, (nb, centre(&b)), 1e-12);
+        assert_eq!(meet, Contact::Smooth, "a whole shared edge");
         for tol in [1e-6, 1e-9] {
             let ab = integrate(
                 &mut Emitter::new(Piece::Quad(a)),
@@ -838,6 +1021,7 @@ mod tests {
                 },
                 tol,
                 0.0,
+                &|| meet,
             );
             let ba = integrate(
                 &mut Emitter::new(Piece::Quad(b)),
@@ -849,6 +1033,7 @@ mod tests {
                 },
                 tol,
                 0.0,
+                &|| meet,
             );
             let gap = (ab.value - ba.value).abs();
             assert!(gap <= ab.err + ba.err, "tol {tol}: {ab:?} {ba:?}");

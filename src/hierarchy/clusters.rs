@@ -1422,7 +1422,9 @@ pub fn exact_piece(
             normal: e.normal[ji],
             centroid: e.centre[ji],
         };
-        let i = exact::integrate(emitter, n_l, &receiver, tol, floor);
+        let i = exact::integrate(emitter, n_l, &receiver, tol, floor, &|| {
+            exact::Contact::Kinked
+        });
         out.value += exposed * i.value.max(0.0);
         out.err += exposed * i.err;
         out.evals += i.evals;

@@ -434,6 +434,8 @@ pub fn open_factor_near(ctx: &Context, near: &mut Near, s: u32, f_tol: f64) -> e
         &receiver,
         ctx.quadrature,
         f_tol.max(1e-15) * area,
+        // Elements meet at T-junctions everywhere; their contacts are not classified.
+        &|| exact::Contact::Kinked,
     );
     exact::Integral {
         value: (i.value / area).max(0.0),
