@@ -777,6 +777,71 @@ mod tests {
         assert!(failures.is_empty(), "{}", failures.join("; "));
     }
 
+    /// The same for the far pairs (every facing pair of the Cornell box at 400 patches that
+    /// is not near: a-priori Gauss orders): each integral within its bound (plus the
+    /// reference's) of the same integral to 1e-9, at 1e-2 and 1e-6.
+    ///
+    /// It does not yet hold: 1,181 of the 50,168 far pairs are outside at 1e-2 (by up to
+    /// 1,184 times: at the a-priori order 2 the check against the one-point rule sees no
+    /// rate) and 19 at 1e-6 (up to 18.5 times, orders 3 and the emitters clipped by a
+    /// slanted, warped wall's plane); docs/ESTIMATORS.md, *Far pairs' bounds*. Run it with
+    /// `cargo test --release --lib far_pairs_are_within -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "known: far pairs' bounds at low a-priori orders are too narrow"]
+    fn far_pairs_are_within_their_bounds() {
+        let scene = Scene::load("cornell").unwrap();
+        let p = PatchSet::build(&scene, Resolution::Patches(400)).unwrap();
+        let tight = SemiAnalytic::default().with_tol(1e-9);
+        let tol = p.plane_tol();
+        let mut far = Vec::new();
+        for a in 0..p.len() {
+            let (ca, ka) = corners(&p, a);
+            for b in a + 1..p.len() {
+                let (cb, kb) = corners(&p, b);
+                let facing = plane_range(&p, a, b).1 > tol && plane_range(&p, b, a).1 > tol;
+                if facing && !super::super::area::near(&p, (a, &ca[..ka]), (b, &cb[..kb])) {
+                    far.push(if p.area[b] < p.area[a] {
+                        (b, a)
+                    } else {
+                        (a, b)
+                    });
+                }
+            }
+        }
+        assert!(far.len() > 10_000, "{} far pairs", far.len());
+        let want: Vec<_> = far
+            .iter()
+            .map(|&(e, r)| tight.exact_pair(&p, e, r, None))
+            .collect();
+        let mut failures = Vec::new();
+        for loose in [1e-2, 1e-6] {
+            let est = SemiAnalytic::default().with_tol(loose);
+            let (mut outside, mut worst, mut evals, mut closest) = (0, 0.0f64, 0, 0.0f64);
+            for (&(e, r), want) in far.iter().zip(&want) {
+                let got = est.exact_pair(&p, e, r, None);
+                evals += got.evals;
+                let off = (got.value - want.value).abs();
+                let allowed = got.err + want.err + 1e-9 * want.value.abs();
+                closest = closest.max(off / allowed);
+                if off > allowed {
+                    outside += 1;
+                    worst = worst.max(off / allowed);
+                }
+            }
+            eprintln!(
+                "tol {loose:.0e}: {outside} of {} far pairs outside (worst {worst:.2}x), \
+                 largest error / bound {closest:.3}, {evals} point factors",
+                far.len()
+            );
+            if outside > 0 {
+                failures.push(format!(
+                    "tol {loose:.0e}: {outside} outside, up to {worst:.2}x"
+                ));
+            }
+        }
+        assert!(failures.is_empty(), "{}", failures.join("; "));
+    }
+
     #[test]
     fn plates_match_closed_forms() {
         let est = SemiAnalytic::new(Nodes::Gauss, 12, 4, 2);
