@@ -213,11 +213,26 @@ pub fn point_to_polygon(x: DVec3, n_x: DVec3, poly: &[DVec3]) -> f64 {
     point_to_polygon_unit(x, n, poly)
 }
 
-/// [`point_to_polygon`] for a unit normal `n`. When every corner of a polygon of at most
-/// four corners is strictly in front of `x` (the common case inside a room), no clipping
-/// is needed and each corner's distance is computed once.
+/// [`point_to_polygon`] for a unit normal `n`: the absolute value of
+/// [`point_to_polygon_oriented`].
 #[inline]
 pub fn point_to_polygon_unit(x: DVec3, n: DVec3, poly: &[DVec3]) -> f64 {
+    point_to_polygon_oriented(x, n, poly).abs()
+}
+
+/// The contour sum of [`point_to_polygon`] with its sign (unit normal `n`): positive where
+/// `x` sees the side of `poly` about which its corners turn counter-clockwise (the front of
+/// a polygon wound by the right-hand rule about its normal), negative where it sees the
+/// back. Its absolute value is [`point_to_polygon_unit`]. For a planar polygon the sign is
+/// the same wherever `x` sees any of it; for a warped one (corners off a common plane)
+/// seen nearly edge-on the sum can pass through 0, where the absolute value has a kink and
+/// this does not: a quadrature over `x` converges on this one.
+///
+/// When every corner of a polygon of at most four corners is strictly in front of `x`
+/// (the common case inside a room), no clipping is needed and each corner's distance is
+/// computed once.
+#[inline]
+pub fn point_to_polygon_oriented(x: DVec3, n: DVec3, poly: &[DVec3]) -> f64 {
     let m = poly.len();
     if (3..=4).contains(&m) {
         let mut r = [DVec3::ZERO; 4];
@@ -247,7 +262,7 @@ pub fn point_to_polygon_unit(x: DVec3, n: DVec3, poly: &[DVec3]) -> f64 {
                     sum += angle(cl, r[k].dot(r[k1])) * n.dot(c) / cl;
                 }
             }
-            return sum.abs() / (2.0 * PI);
+            return -sum / (2.0 * PI);
         }
     }
     point_to_polygon_clipped(x, n, poly)
@@ -256,11 +271,11 @@ pub fn point_to_polygon_unit(x: DVec3, n: DVec3, poly: &[DVec3]) -> f64 {
 /// Points evaluated together by [`point_to_polygon_lanes`].
 pub const LANES: usize = 8;
 
-/// [`point_to_polygon_unit`] at up to [`LANES`] points `xs` against one polygon of 3 or 4
-/// corners, written as structure-of-arrays passes over the lanes, without branches, so
+/// [`point_to_polygon_oriented`] at up to [`LANES`] points `xs` against one polygon of 3 or
+/// 4 corners, written as structure-of-arrays passes over the lanes, without branches, so
 /// that the compiler vectorizes them (run it under [`crate::simd::with_widest`]). Every
 /// lane computes the same IEEE operations in the same order as the scalar function, so
-/// `out[l]` is `point_to_polygon_unit(xs[l], n, poly)` bit for bit (test
+/// `out[l]` is `point_to_polygon_oriented(xs[l], n, poly)` bit for bit (test
 /// `lanes_match_the_scalar_factor_bit_for_bit`), except in the lanes whose bit is set in
 /// the returned mask: there the polygon has a corner behind `xs[l]`'s plane and needs the
 /// clipped path, which the caller takes. Lanes past `xs.len()` are left at 0.
@@ -313,8 +328,8 @@ pub fn point_to_polygon_lanes(
             let cl = cl2.sqrt();
             let dot = ax * bx + ay * by + az * bz;
             let term = angle_lane(cl, dot) * (n.x * cx + n.y * cy + n.z * cz) / cl;
-            // A degenerate edge adds nothing (`+ 0.0` can only turn a -0 sum into +0,
-            // which the absolute value below makes the same).
+            // A degenerate edge adds nothing: `+ 0.0` leaves the sum as it is (it starts
+            // at +0, and a sum in round-to-nearest never becomes -0 from there).
             let keep = cl2 > 1e-24 * len2[k][l] * len2[k1][l];
             sum[l] += if keep { term } else { 0.0 };
         }
@@ -325,7 +340,7 @@ pub fn point_to_polygon_lanes(
         out[l] = if zero || l >= used {
             0.0
         } else {
-            sum[l].abs() / (2.0 * PI)
+            -sum[l] / (2.0 * PI)
         };
         clip |= u32::from(!all_front[l] && l < used) << l;
     }
@@ -429,7 +444,8 @@ fn atan_tail(y0: f64, x: f64, more: f64) -> f64 {
     y0 + (x * (z * p / q) + x + more)
 }
 
-/// The general case of [`point_to_polygon_unit`]: clips the polygon to `x`'s front side.
+/// The general case of [`point_to_polygon_oriented`]: clips the polygon to `x`'s front
+/// side (the clipped polygon keeps the winding).
 fn point_to_polygon_clipped(x: DVec3, n: DVec3, poly: &[DVec3]) -> f64 {
     // Nothing strictly in front (this includes a polygon lying in x's own plane, whose
     // projected solid angle is 0 from any point approaching x from the front).
@@ -471,7 +487,7 @@ fn point_to_polygon_clipped(x: DVec3, n: DVec3, poly: &[DVec3]) -> f64 {
     if let Some(f) = first {
         sum += edge_term(last, f, n);
     }
-    sum.abs() / (2.0 * PI)
+    -sum / (2.0 * PI)
 }
 
 /// One edge of the contour integral: `γ (n · u)` for the edge from `x + a` to `x + b`.
@@ -568,14 +584,14 @@ mod tests {
                         let front = poly.iter().all(|&p| n.dot(p - x) >= 0.0);
                         assert_eq!(clip >> l & 1 == 0, front, "case {case} lane {l} at {w}");
                         if front {
-                            let want = point_to_polygon_unit(x, n, &poly);
+                            let want = point_to_polygon_oriented(x, n, &poly);
                             assert_eq!(
                                 out[l].to_bits(),
                                 want.to_bits(),
                                 "case {case} lane {l} at {w}: {} against {want}",
                                 out[l]
                             );
-                            checked[usize::from(want > 0.0)] += 1;
+                            checked[usize::from(want != 0.0)] += 1;
                         }
                     }
                     assert!(out[chunk.len()..].iter().all(|&v| v == 0.0));

@@ -152,11 +152,7 @@ fn polygon_exact(emitter: &[DVec3], receiver: &[DVec3]) -> f64 {
     };
     let (ne, nr) = (normal(emitter), normal(receiver));
     let centroid = receiver.iter().sum::<DVec3>() / receiver.len() as f64;
-    let recv = Receiver {
-        poly: receiver,
-        normal: nr.normalize(),
-        centroid,
-    };
+    let recv = Receiver::new(receiver, nr.normalize(), centroid);
     let mut total = 0.0;
     for k in 1..emitter.len() - 1 {
         let tri = Piece::Tri([emitter[0], emitter[k], emitter[k + 1]]);

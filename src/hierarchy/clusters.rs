@@ -1356,11 +1356,7 @@ fn piece_terms(
     if samples.is_empty() {
         return Some(t);
     }
-    let rec = Receiver {
-        poly: e.corners(l),
-        normal: e.normal[li],
-        centroid: e.centre[li],
-    };
+    let rec = Receiver::new(e.corners(l), e.normal[li], e.centre[li]);
     for (i, s) in samples.iter().enumerate() {
         let n_s = e.normal[s.root as usize];
         let g = match far::point_factor(s.at, n_s, small) {
@@ -1417,11 +1413,7 @@ pub fn exact_piece(
         if exposed <= 0.0 {
             continue;
         }
-        let receiver = Receiver {
-            poly: e.corners(j),
-            normal: e.normal[ji],
-            centroid: e.centre[ji],
-        };
+        let receiver = Receiver::new(e.corners(j), e.normal[ji], e.centre[ji]);
         let i = exact::integrate(emitter, n_l, &receiver, tol, floor, &|| {
             exact::Contact::Kinked
         });
@@ -2151,11 +2143,7 @@ pub(super) mod tests {
             e.add_root(unit_square(c, false), -DVec3::Z);
             let vis = e.visible_areas();
             let t = Tree::build(&e, &vis, &[0.5, 0.5]);
-            let rec = Receiver {
-                poly: e.corners(1),
-                normal: e.normal[1],
-                centroid: e.centre[1],
-            };
+            let rec = Receiver::new(e.corners(1), e.normal[1], e.centre[1]);
             let (nx, ny) = (400, 200);
             let mut exact = 0.0;
             for i in 0..nx {

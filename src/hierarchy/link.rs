@@ -266,11 +266,7 @@ pub fn evaluate(
     if !facing(e, ctx.tol, r, s) {
         return (None, cost);
     }
-    let receiver = Receiver {
-        poly: ps,
-        normal: ns,
-        centroid: e.centre[si],
-    };
+    let receiver = Receiver::new(ps, ns, e.centre[si]);
     // The oracle's samples of F(x -> P_s) over the receiver.
     let (mut fmin, mut fmax) = (f64::INFINITY, 0.0f64);
     for &u in &GRID {
@@ -404,11 +400,7 @@ pub fn open_factor_near(ctx: &Context, near: &mut Near, s: u32, f_tol: f64) -> e
     {
         return exact::Integral::default();
     }
-    let receiver = Receiver {
-        poly: e.corners(s),
-        normal: e.normal[si],
-        centroid: e.centre[si],
-    };
+    let receiver = Receiver::new(e.corners(s), e.normal[si], e.centre[si]);
     // A leaf small beside its distance from the source: the factor at its centroid, when
     // the rule's bound is within `FAR_SHARE` of the tolerance the quadrature would be held
     // to (the Gauss rule's a-posteriori estimate usually lands far below that tolerance;

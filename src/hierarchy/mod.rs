@@ -1983,11 +1983,7 @@ fn kernel_weighting_error(
     let kids = e.children(s);
     let seen = kids.map(|c| {
         let ci = c as usize;
-        let poly = exact::Receiver {
-            poly: e.corners(c),
-            normal: e.normal[ci],
-            centroid: e.centre[ci],
-        };
+        let poly = exact::Receiver::new(e.corners(c), e.normal[ci], e.centre[ci]);
         exact::point_factor(x, n, &poly)
     });
     let (total, area) = (
