@@ -385,6 +385,11 @@ impl SemiAnalytic {
 pub(crate) struct Scratch {
     strata: Vec<(f64, f64)>,
     ys: Vec<(f64, f64)>,
+    /// Every node of a pair (replicate after replicate), its factor, and each replicate's
+    /// random stream after the nodes were drawn.
+    xs: Vec<DVec3>,
+    fs: Vec<f64>,
+    rngs: Vec<Pcg32>,
     /// Every node of a pair: its replicate, `F(x → P_r)` and the end of its rays.
     nodes: Vec<(u32, f64, usize)>,
     /// The pair's segment rays (node after node), as structure of arrays, and their
@@ -603,18 +608,28 @@ impl SemiAnalytic {
         s.org.iter_mut().chain(&mut s.dir).for_each(Vec::clear);
         s.gs.clear();
         let per_node = self.vis_rays.max(1).pow(2);
+        // The nodes of every replicate first, each from its replicate's stream, and their
+        // factors in one vector batch ([`exact::point_factors`], the same values as one
+        // at a time); then each node's rays, from the same streams in the same order.
+        s.xs.clear();
+        s.rngs.clear();
         for rep in 0..reps {
             let mut rng = Pcg32::keyed(ctx.seed, i as u64, j as u64, rep as u64);
             jittered(&mut rng, m, &mut s.strata);
-            for k in 0..s.strata.len() {
-                let (u, v) = s.strata[k];
-                let xf = on_e.point(u, v);
-                let f = exact::point_factor(xf, n_x, &recv);
+            s.xs.extend(s.strata.iter().map(|&(u, v)| on_e.point(u, v)));
+            s.rngs.push(rng);
+        }
+        exact::point_factors(&s.xs, n_x, &recv, &mut s.fs);
+        let per_rep = s.xs.len() / reps;
+        for rep in 0..reps {
+            let rng = &mut s.rngs[rep];
+            for k in rep * per_rep..(rep + 1) * per_rep {
+                let (xf, f) = (s.xs[k], s.fs[k]);
                 if f <= 0.0 {
                     continue;
                 }
                 if !free {
-                    jittered(&mut rng, self.vis_rays.max(1), &mut s.ys);
+                    jittered(rng, self.vis_rays.max(1), &mut s.ys);
                     for &(u, v) in &s.ys {
                         let y = on_r.point(u, v);
                         if let Some(g) = kernel(xf, n_e, y, n_r) {
