@@ -228,15 +228,15 @@ pub fn point_to_polygon_unit(x: DVec3, n: DVec3, poly: &[DVec3]) -> f64 {
 /// seen nearly edge-on the sum can pass through 0, where the absolute value has a kink and
 /// this does not: a quadrature over `x` converges on this one.
 ///
-/// When every corner of a polygon of at most four corners is strictly in front of `x`
-/// (the common case inside a room), no clipping is needed and each corner's distance is
-/// computed once.
+/// When every corner of a polygon of at most [`MOST_CORNERS`] corners is strictly in front
+/// of `x` (the common case inside a room), no clipping is needed and each corner's
+/// distance is computed once.
 #[inline]
 pub fn point_to_polygon_oriented(x: DVec3, n: DVec3, poly: &[DVec3]) -> f64 {
     let m = poly.len();
-    if (3..=4).contains(&m) {
-        let mut r = [DVec3::ZERO; 4];
-        let mut len2 = [0.0f64; 4];
+    if (3..=MOST_CORNERS).contains(&m) {
+        let mut r = [DVec3::ZERO; MOST_CORNERS];
+        let mut len2 = [0.0f64; MOST_CORNERS];
         let (mut all_front, mut front, mut reach2) = (true, f64::NEG_INFINITY, 0.0f64);
         for k in 0..m {
             r[k] = poly[k] - x;
@@ -268,14 +268,19 @@ pub fn point_to_polygon_oriented(x: DVec3, n: DVec3, poly: &[DVec3]) -> f64 {
     point_to_polygon_clipped(x, n, poly)
 }
 
+/// Most corners of a polygon that [`point_to_polygon_oriented`] and
+/// [`point_to_polygon_lanes`] take without the general (clipping) path: a quadrilateral
+/// clipped by a plane has at most 5.
+pub const MOST_CORNERS: usize = 5;
+
 /// Points evaluated together by [`point_to_polygon_lanes`].
 pub const LANES: usize = 8;
 
-/// [`point_to_polygon_oriented`] at up to [`LANES`] points `xs` against one polygon of 3 or
-/// 4 corners, written as structure-of-arrays passes over the lanes, without branches, so
-/// that the compiler vectorizes them (run it under [`crate::simd::with_widest`]). Every
-/// lane computes the same IEEE operations in the same order as the scalar function, so
-/// `out[l]` is `point_to_polygon_oriented(xs[l], n, poly)` bit for bit (test
+/// [`point_to_polygon_oriented`] at up to [`LANES`] points `xs` against one polygon of 3 to
+/// [`MOST_CORNERS`] corners, written as structure-of-arrays passes over the lanes, without
+/// branches, so that the compiler vectorizes them (run it under
+/// [`crate::simd::with_widest`]). Every lane computes the same IEEE operations in the
+/// same order as the scalar function, so `out[l]` is `point_to_polygon_oriented(xs[l], n, poly)` bit for bit (test
 /// `lanes_match_the_scalar_factor_bit_for_bit`), except in the lanes whose bit is set in
 /// the returned mask: there the polygon has a corner behind `xs[l]`'s plane and needs the
 /// clipped path, which the caller takes. Lanes past `xs.len()` are left at 0.
@@ -289,7 +294,7 @@ pub fn point_to_polygon_lanes(
     poly: &[DVec3],
     out: &mut [f64; LANES],
 ) -> u32 {
-    debug_assert!((3..=4).contains(&poly.len()) && xs.len() <= LANES);
+    debug_assert!((3..=MOST_CORNERS).contains(&poly.len()) && xs.len() <= LANES);
     let m = poly.len();
     let used = xs.len();
     let (mut px, mut py, mut pz) = ([0.0f64; LANES], [0.0f64; LANES], [0.0f64; LANES]);
@@ -298,10 +303,10 @@ pub fn point_to_polygon_lanes(
         let x = xs[if l < used { l } else { 0 }];
         (px[l], py[l], pz[l]) = (x.x, x.y, x.z);
     }
-    let mut rx = [[0.0f64; LANES]; 4];
-    let mut ry = [[0.0f64; LANES]; 4];
-    let mut rz = [[0.0f64; LANES]; 4];
-    let mut len2 = [[0.0f64; LANES]; 4];
+    let mut rx = [[0.0f64; LANES]; MOST_CORNERS];
+    let mut ry = [[0.0f64; LANES]; MOST_CORNERS];
+    let mut rz = [[0.0f64; LANES]; MOST_CORNERS];
+    let mut len2 = [[0.0f64; LANES]; MOST_CORNERS];
     let mut all_front = [true; LANES];
     let mut front = [f64::NEG_INFINITY; LANES];
     let mut reach2 = [0.0f64; LANES];
@@ -554,12 +559,14 @@ mod tests {
         for case in 0..400 {
             let scale = [1e-6, 1.0, 1e6][case % 3];
             let shift = DVec3::new(u(), u(), u()) * [0.0, 10.0, 1e7][case / 3 % 3];
-            let tri = case % 2 == 0;
-            let mut poly: Vec<DVec3> = [(0.0, 0.0), (1.0, 0.1), (0.9, 1.2), (-0.1, 0.8)]
-                .iter()
-                .take(if tri { 3 } else { 4 })
-                .map(|&(a, b)| (DVec3::new(a + 0.2 * u(), b + 0.2 * u(), 0.0) * scale) + shift)
-                .collect();
+            // Triangles, quadrilaterals and pentagons (a quadrilateral clipped by a plane).
+            let corners = 3 + case / 9 % 3;
+            let mut poly: Vec<DVec3> =
+                [(0.0, 0.0), (1.0, 0.1), (1.1, 0.7), (0.9, 1.2), (-0.1, 0.8)]
+                    .iter()
+                    .take(corners)
+                    .map(|&(a, b)| (DVec3::new(a + 0.2 * u(), b + 0.2 * u(), 0.0) * scale) + shift)
+                    .collect();
             if case % 5 == 0 {
                 poly.reverse();
             }
