@@ -684,21 +684,28 @@ fn in_front(
     if !planar || poly.iter().all(|&p| n_e.dot(p) >= lo - delta) {
         return None;
     }
-    let level = hi + delta;
     let mut k = 0;
+    clip_above(poly, n_e, hi + delta, |p| {
+        out[k] = p;
+        k += 1;
+    });
+    Some(if k >= 3 { k } else { 0 })
+}
+
+/// The corners of `poly` clipped to the half-space `n · p >= level` (Sutherland–Hodgman
+/// against one plane), in order, each given to `push`; a corner on the plane is kept once
+/// and adds no crossing. A convex polygon of `k` corners gives at most `k + 1`.
+pub(crate) fn clip_above(poly: &[DVec3], n: DVec3, level: f64, mut push: impl FnMut(DVec3)) {
     for i in 0..poly.len() {
         let (a, b) = (poly[i], poly[(i + 1) % poly.len()]);
-        let (da, db) = (n_e.dot(a) - level, n_e.dot(b) - level);
+        let (da, db) = (n.dot(a) - level, n.dot(b) - level);
         if da >= 0.0 {
-            out[k] = a;
-            k += 1;
+            push(a);
         }
         if (da > 0.0 && db < 0.0) || (da < 0.0 && db > 0.0) {
-            out[k] = a + (b - a) * (da / (da - db));
-            k += 1;
+            push(a + (b - a) * (da / (da - db)));
         }
     }
-    Some(if k >= 3 { k } else { 0 })
 }
 
 /// Relative rounding of an integral of [`integrate`] that spent `evals` point-factor

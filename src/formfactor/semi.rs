@@ -294,16 +294,7 @@ fn blockers_of(p: &PatchSet, prep: &Prepared, i: usize) -> Vec<u32> {
 /// `n` (Sutherland–Hodgman against one plane).
 fn clip_front(poly: &[DVec3], n: DVec3, c: DVec3) -> Vec<DVec3> {
     let mut out = Vec::with_capacity(poly.len() + 1);
-    for k in 0..poly.len() {
-        let (a, b) = (poly[k], poly[(k + 1) % poly.len()]);
-        let (da, db) = (n.dot(a - c), n.dot(b - c));
-        if da >= 0.0 {
-            out.push(a);
-        }
-        if (da >= 0.0) != (db >= 0.0) {
-            out.push(a + (b - a) * (da / (da - db)));
-        }
-    }
+    exact::clip_above(poly, n, n.dot(c), |p| out.push(p));
     out
 }
 
