@@ -360,30 +360,53 @@ fn sweep(
         old.iter()
             .map(|&o| Both([o[0], o[1], o[2], o[0], o[1], o[2], 0.0, 0.0])),
     );
+    crate::simd::with_widest(
+        #[inline(always)]
+        || rows_pass(sys, rows, floor, omega, both, old, b),
+    )
+}
+
+/// The rows of one [`sweep`], its records of both values made.
+#[inline(always)]
+fn rows_pass(
+    sys: &System,
+    rows: &Rows,
+    floor: &Floor,
+    omega: [f64; 3],
+    both: &mut [Both],
+    old: &[[f64; 3]],
+    b: &mut [[f64; 3]],
+) -> ([f64; 3], [f64; 3]) {
     let mut res = [0.0f64; 3];
     let mut per_patch = [0.0f64; 3];
     for i in 0..rows.len() {
         let (ind, val) = rows.row(i);
-        // `all`: F_i . old (for the residual of `old`); `off`: the sweep's sum over j != i
-        // with current values; `fii`: the diagonal.
-        let (mut all, mut off, mut fii) = ([0.0; 3], [0.0; 3], 0.0);
+        // One vector sum over the whole record: lanes 0-2 are `F_i . old` (for the
+        // residual of `old`), lanes 3-5 the sweep's sum with current values, the diagonal
+        // included (its current value is still `old_i`) and taken out below; `fii` is the
+        // diagonal.
+        let (mut sum, mut fii) = ([0.0f64; 8], 0.0);
         for (k, (&j, &f)) in ind.iter().zip(val).enumerate() {
             if let Some(&ahead) = ind.get(k + PREFETCH) {
                 crate::simd::prefetch(&both[ahead as usize]);
             }
             let j = j as usize;
             let w = &both[j].0;
-            for c in 0..3 {
-                all[c] += f * w[c];
+            for c in 0..8 {
+                sum[c] += f * w[c];
             }
             if j == i {
                 fii += f;
-            } else {
-                for c in 0..3 {
-                    off[c] += f * w[3 + c];
-                }
             }
         }
+        let all = [sum[0], sum[1], sum[2]];
+        let off = [0, 1, 2].map(|c| {
+            if fii == 0.0 {
+                sum[3 + c]
+            } else {
+                sum[3 + c] - fii * old[i][c]
+            }
+        });
         let (e, rho) = (sys.emit[i], sys.rho[i]);
         let r = [0, 1, 2].map(|c| e[c] + rho[c] * all[c] - old[i][c]);
         per_patch = max3(per_patch, floor.of_residual(sys, i, r, old[i]));
@@ -403,7 +426,7 @@ fn sweep(
 }
 
 /// How many entries ahead of the one read a sweep asks for its patch's record.
-const PREFETCH: usize = 16;
+const PREFETCH: usize = 32;
 
 /// A patch's value at the start of a sweep and its current one, aligned to a cache line.
 #[derive(Clone, Copy)]
