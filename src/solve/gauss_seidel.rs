@@ -473,6 +473,95 @@ mod tests {
         assert!((residual(&owned.sys(), &owned.emit) - gs.history[0]).abs() < 1e-15);
     }
 
+    /// One sweep, as the module docs write it, entry by entry in scalar arithmetic: the
+    /// residual of `old` and the next iterate.
+    fn reference_sweep(
+        sys: &System,
+        omega: [f64; 3],
+        old: &[[f64; 3]],
+    ) -> (Vec<[f64; 3]>, [f64; 3]) {
+        let mut b = old.to_vec();
+        let mut res = [0.0f64; 3];
+        for (i, row) in sys.f.outer_iterator().enumerate() {
+            let (mut all, mut off, mut fii) = ([0.0; 3], [0.0; 3], 0.0);
+            for (j, &f) in row.iter() {
+                for c in 0..3 {
+                    all[c] += f * old[j][c];
+                }
+                if j == i {
+                    fii += f;
+                } else {
+                    for c in 0..3 {
+                        off[c] += f * b[j][c];
+                    }
+                }
+            }
+            let (e, rho) = (sys.emit[i], sys.rho[i]);
+            for c in 0..3 {
+                res[c] = res[c].max((e[c] + rho[c] * all[c] - old[i][c]).abs());
+                let gs = (e[c] + rho[c] * off[c]) / (1.0 - rho[c] * fii);
+                b[i][c] = if omega[c] == 1.0 {
+                    gs
+                } else {
+                    old[i][c] + omega[c] * (gs - old[i][c])
+                };
+            }
+        }
+        (b, res)
+    }
+
+    /// The sweep's vector sum over each column's record gives the scalar sweep's bits at
+    /// every vector width where no patch sees itself, and the same values to rounding
+    /// where some do (the diagonal's share is taken out after the sum).
+    #[test]
+    fn vector_sweep_is_the_scalar_sweep() {
+        use crate::simd::{set_limit, Width};
+        let with_diagonals = random(300, 12, 11);
+        let mut t = crate::matrix::Triplets::new((300, 300));
+        for (i, row) in with_diagonals.f.outer_iterator().enumerate() {
+            for (j, &f) in row.iter().filter(|&(j, _)| j != i) {
+                t.add_triplet(i, j, f);
+            }
+        }
+        let without = Owned {
+            f: t.to_csr(),
+            ..random(300, 12, 11)
+        };
+        assert!(with_diagonals.f.nnz() > without.f.nnz());
+        let opts = Options::default();
+        for (owned, exact) in [(&without, true), (&with_diagonals, false)] {
+            let sys = owned.sys();
+            let pro = Prologue::new(&sys, &opts).unwrap();
+            // A start that is not the emission, so that every term of a row counts.
+            let old: Vec<[f64; 3]> = (0..300)
+                .map(|i| [0.3, 0.7, 1.1].map(|s| s * (1.0 + (i % 7) as f64)))
+                .collect();
+            let omega = [1.0, 1.1, 1.37];
+            let (want, want_res) = reference_sweep(&sys, omega, &old);
+            for w in Width::ALL.into_iter().filter(|w| w.supported()) {
+                set_limit(w);
+                let (mut both, mut b) = (Vec::new(), vec![[0.0f64; 3]; 300]);
+                let (res, _) =
+                    super::sweep(&sys, &pro.rows, &pro.floor, omega, &mut both, &old, &mut b);
+                for (i, (got, want)) in b.iter().zip(&want).enumerate() {
+                    for c in 0..3 {
+                        let (g, x) = (got[c], want[c]);
+                        if exact {
+                            assert_eq!(g.to_bits(), x.to_bits(), "patch {i} channel {c} at {w}");
+                        } else {
+                            assert!(
+                                (g - x).abs() <= 1e-14 * x.abs(),
+                                "patch {i} at {w}: {g} {x}"
+                            );
+                        }
+                    }
+                }
+                assert_eq!(res, want_res, "at {w}");
+            }
+        }
+        set_limit(Width::Avx512);
+    }
+
     #[test]
     fn sor_at_one_is_gauss_seidel() {
         let owned = random(200, 12, 7);
