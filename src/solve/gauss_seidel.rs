@@ -381,32 +381,33 @@ fn rows_pass(
     let mut per_patch = [0.0f64; 3];
     for i in 0..rows.len() {
         let (ind, val) = rows.row(i);
-        // One vector sum over the whole record: lanes 0-2 are `F_i . old` (for the
-        // residual of `old`), lanes 3-5 the sweep's sum with current values, the diagonal
-        // included (its current value is still `old_i`) and taken out below; `fii` is the
-        // diagonal.
-        let (mut sum, mut fii) = ([0.0f64; 8], 0.0);
+        // Both halves of each column's record added without a branch: `all` is `F_i . old`
+        // (for the residual of `old`), `cur` the sweep's sum with current values, the
+        // diagonal included (its current value is still `old_i`) and taken out below;
+        // `fii` is the diagonal.
+        let (mut all, mut cur, mut fii) = ([0.0f64; 3], [0.0f64; 3], 0.0);
         for (k, (&j, &f)) in ind.iter().zip(val).enumerate() {
             if let Some(&ahead) = ind.get(k + PREFETCH) {
                 crate::simd::prefetch(&both[ahead as usize]);
             }
             let j = j as usize;
             let w = &both[j].0;
-            for c in 0..8 {
-                sum[c] += f * w[c];
-            }
+            // Six sums, each array indexed by constants only, so that the compiler keeps
+            // them in registers: a sum of 8 lanes over the whole record, read back through
+            // a closure, was kept on the stack and stored and reloaded at every entry in
+            // some builds (an unrelated change elsewhere in the crate made the 262k-patch
+            // solve 45% slower that way; docs/PERFORMANCE.md, section 2).
+            all = [all[0] + f * w[0], all[1] + f * w[1], all[2] + f * w[2]];
+            cur = [cur[0] + f * w[3], cur[1] + f * w[4], cur[2] + f * w[5]];
             if j == i {
                 fii += f;
             }
         }
-        let all = [sum[0], sum[1], sum[2]];
-        let off = [0, 1, 2].map(|c| {
-            if fii == 0.0 {
-                sum[3 + c]
-            } else {
-                sum[3 + c] - fii * old[i][c]
-            }
-        });
+        let off = if fii == 0.0 {
+            cur
+        } else {
+            [0, 1, 2].map(|c| cur[c] - fii * old[i][c])
+        };
         let (e, rho) = (sys.emit[i], sys.rho[i]);
         let r = [0, 1, 2].map(|c| e[c] + rho[c] * all[c] - old[i][c]);
         per_patch = max3(per_patch, floor.of_residual(sys, i, r, old[i]));
@@ -510,9 +511,9 @@ mod tests {
         (b, res)
     }
 
-    /// The sweep's vector sum over each column's record gives the scalar sweep's bits at
-    /// every vector width where no patch sees itself, and the same values to rounding
-    /// where some do (the diagonal's share is taken out after the sum).
+    /// The sweep's branch-free sums over each column's record, compiled at every vector
+    /// width, give the reference sweep's bits where no patch sees itself, and the same
+    /// values to rounding where some do (the diagonal's share is taken out after the sum).
     #[test]
     fn vector_sweep_is_the_scalar_sweep() {
         use crate::simd::{set_limit, Width};
