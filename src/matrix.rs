@@ -339,9 +339,15 @@ pub fn repair_row_sums(f: &Csr, rho: &[[f64; 3]]) -> Option<(Csr, RowRepair)> {
 pub fn repair_rows_from(f: &Csr, rho: &[[f64; 3]], lo: usize) -> Option<(Csr, RowRepair)> {
     let mut rep = RowRepair::default();
     let mut scale = vec![1.0; f.rows()];
-    for (r, row) in f.outer_iterator().enumerate() {
+    // The sums in parallel (a pass over the whole matrix), the rest in row order.
+    let (ptr, val) = (f.indptr(), f.data());
+    let sums: Vec<f64> = (0..f.rows())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|r| val[ptr.index(r)..ptr.index(r + 1)].iter().sum())
+        .collect();
+    for (r, &sum) in sums.iter().enumerate() {
         let i = lo + r;
-        let sum: f64 = row.data().iter().sum();
         let rho_i = rho.get(i).map_or(0.0, |r| r[0].max(r[1]).max(r[2]));
         let gain = rho_i * sum;
         if gain > rep.worst_gain {

@@ -110,28 +110,42 @@ pub fn check(ff: &FormFactors) -> Bounds {
 /// [`check`] of rows `lo..` of a matrix held as `f` with the standard errors `se` (its
 /// row `r` is the matrix's row `lo + r`, as in a [`crate::matrix::Block`]).
 pub fn check_rows(f: &Csr, se: &[f32], lo: usize) -> Bounds {
-    let mut b = Bounds::default();
-    let ptr = f.indptr();
-    for (r, row) in f.outer_iterator().enumerate() {
-        let i = lo + r;
-        let sum: f64 = row.data().iter().sum();
-        if sum > 1.0 || !sum.is_finite() {
+    use rayon::prelude::*;
+    let (ptr, ind, val) = (f.indptr(), f.indices(), f.data());
+    // Rows in parallel, each thread's run of rows in order and the runs joined in order,
+    // so the lists come out in row order whatever the threads.
+    (0..f.rows())
+        .into_par_iter()
+        .with_min_len(ROWS_PER_TASK)
+        .fold(Bounds::default, |mut b, r| {
+            let i = lo + r;
             let (a, z) = (ptr.index(r), ptr.index(r + 1));
-            b.rows_over_one.push(RowOver {
-                row: i,
-                sum,
-                // As `FormFactors::row_sum_bar`.
-                bar: sum_bar(&se[a..z]),
-            });
-        }
-        for (j, &f) in row.iter() {
-            if !f.is_finite() || !(0.0..=1.0).contains(&f) {
-                b.out_of_range.push((i, j, f));
+            let sum: f64 = val[a..z].iter().sum();
+            if sum > 1.0 || !sum.is_finite() {
+                b.rows_over_one.push(RowOver {
+                    row: i,
+                    sum,
+                    // As `FormFactors::row_sum_bar`.
+                    bar: sum_bar(&se[a..z]),
+                });
             }
-        }
-    }
-    b
+            for (&j, &f) in ind[a..z].iter().zip(&val[a..z]) {
+                if !f.is_finite() || !(0.0..=1.0).contains(&f) {
+                    b.out_of_range.push((i, j as usize, f));
+                }
+            }
+            b
+        })
+        .reduce(Bounds::default, |mut a, b| {
+            a.rows_over_one.extend(b.rows_over_one);
+            a.out_of_range.extend(b.out_of_range);
+            a
+        })
 }
+
+/// Fewest rows a thread takes at a time in the checks' passes over the matrix (each row
+/// is a few hundred additions).
+const ROWS_PER_TASK: usize = 1024;
 
 /// What [`repair`] changed.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -384,6 +398,33 @@ mod tests {
     /// to 0.01 - 0.3 × 0.1² / (0.1² + 2 × 0.01²) < 0. It is held at 0, and the two others
     /// share the rest of the excess equally (equal bars), so the row sums to 1 with every
     /// entry in [0, 1].
+    /// Rows are checked in parallel runs; what is found comes out in row order, as one
+    /// pass would list it, however the runs fall.
+    #[test]
+    fn bounds_come_out_in_row_order() {
+        let n = 20_000;
+        let over = [7usize, 4_099, 4_100, 12_345, 19_999];
+        let outside = [(3usize, -0.25), (8_191, 1.5), (15_000, f64::NAN)];
+        let rows = (0..n)
+            .map(|i| {
+                let mut f = if over.contains(&i) { 0.6 } else { 0.3 };
+                if let Some(&(_, v)) = outside.iter().find(|&&(r, _)| r == i) {
+                    f = v;
+                }
+                vec![
+                    ((i + 1) as u32 % n as u32, f, 0.01),
+                    ((i + 2) as u32 % n as u32, 0.45, 0.01),
+                ]
+            })
+            .collect();
+        let b = check(&matrix(rows, vec![1.0; n]));
+        let got: Vec<usize> = b.rows_over_one.iter().map(|r| r.row).collect();
+        // Row 15,000's sum is NaN: reported with the rows over one.
+        assert_eq!(got, [7, 4_099, 4_100, 8_191, 12_345, 15_000, 19_999]);
+        let got: Vec<usize> = b.out_of_range.iter().map(|e| e.0).collect();
+        assert_eq!(got, [3, 8_191, 15_000]);
+    }
+
     #[test]
     fn closure_keeps_entries_non_negative() {
         let ff = matrix(

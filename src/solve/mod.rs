@@ -241,26 +241,40 @@ pub(crate) fn check_patches(rho: &[[f64; 3]], emit: &[[f64; 3]], area: &[f64]) -
 /// receives (`rho_i F_ii >= 1`), in one pass over the rows; `f`'s rows are the matrix's rows
 /// `lo..`, `rho` of every patch (checked finite before: [`check_patches`]).
 pub(crate) fn check_matrix(f: &Csr, lo: usize, rho: &[[f64; 3]]) -> Result<()> {
-    for (r, row) in f.outer_iterator().enumerate() {
+    let (ptr, ind, val) = (f.indptr(), f.indices(), f.data());
+    // The row's diagonal, or the first entry that is not finite.
+    let row = |r: usize| -> std::result::Result<f64, (usize, f64)> {
         let i = lo + r;
         let mut fii = 0.0;
-        for (j, &v) in row.iter() {
+        for k in ptr.index(r)..ptr.index(r + 1) {
+            let (j, v) = (ind[k] as usize, val[k]);
             if !v.is_finite() {
-                return Err(Error::Config(format!("F[{i}, {j}] = {v} is not finite")));
+                return Err((j, v));
             }
             if j == i {
                 fii = v;
             }
         }
-        let worst = rho[i].iter().fold(0.0f64, |m, r| m.max(r * fii));
-        if worst >= 1.0 {
-            return Err(Error::Config(format!(
-                "patch {i}: rho * F_ii = {worst:.6} >= 1 (F_ii = {fii:.6}): the patch \
-                 would reflect onto itself at least all it receives"
-            )));
-        }
+        Ok(fii)
+    };
+    let worst = |r: usize, fii: f64| rho[lo + r].iter().fold(0.0f64, |m, x| m.max(x * fii));
+    // Rows in parallel; the first row refused is reported, whatever the threads.
+    let bad = (0..f.rows())
+        .into_par_iter()
+        .with_min_len(1024)
+        .find_first(|&r| row(r).map_or(true, |fii| worst(r, fii) >= 1.0));
+    let Some(r) = bad else {
+        return Ok(());
+    };
+    let i = lo + r;
+    match row(r) {
+        Err((j, v)) => Err(Error::Config(format!("F[{i}, {j}] = {v} is not finite"))),
+        Ok(fii) => Err(Error::Config(format!(
+            "patch {i}: rho * F_ii = {:.6} >= 1 (F_ii = {fii:.6}): the patch would reflect \
+             onto itself at least all it receives",
+            worst(r, fii)
+        ))),
     }
-    Ok(())
 }
 
 /// Stopping rules of the iterative solvers.
@@ -703,30 +717,39 @@ impl Gain {
 
     /// The bound over `rows`, which are the matrix's rows `lo..` (`rho` of every patch).
     pub(crate) fn of_rows(rho: &[[f64; 3]], rows: &Rows, lo: usize) -> Gain {
-        let mut g = Gain {
+        let g = Gain {
             gain: [0.0; 3],
             patch: 0,
             row_sum: 0.0,
             rho: 0.0,
             best: f64::NEG_INFINITY,
         };
-        for r in 0..rows.len() {
-            let i = lo + r;
-            let (_, val) = rows.row(r);
-            let abs_sum: f64 = val.iter().map(|v| v.abs()).sum();
-            let rho = rho[i];
-            for (g, r) in g.gain.iter_mut().zip(&rho) {
-                *g = g.max(r * abs_sum);
-            }
-            let here = rho[0].max(rho[1]).max(rho[2]) * abs_sum;
-            if here > g.best {
-                g.best = here;
-                g.patch = i;
-                g.row_sum = val.iter().sum();
-                g.rho = rho[0].max(rho[1]).max(rho[2]);
-            }
-        }
-        g
+        // Rows in parallel, runs of rows merged in order ([`Gain::merge`] keeps the first of
+        // equal bounds), so the patch named is the same whatever the threads.
+        (0..rows.len())
+            .into_par_iter()
+            .with_min_len(1024)
+            .fold(
+                || g,
+                |mut g, r| {
+                    let i = lo + r;
+                    let (_, val) = rows.row(r);
+                    let abs_sum: f64 = val.iter().map(|v| v.abs()).sum();
+                    let rho = rho[i];
+                    for (g, r) in g.gain.iter_mut().zip(&rho) {
+                        *g = g.max(r * abs_sum);
+                    }
+                    let here = rho[0].max(rho[1]).max(rho[2]) * abs_sum;
+                    if here > g.best {
+                        g.best = here;
+                        g.patch = i;
+                        g.row_sum = val.iter().sum();
+                        g.rho = rho[0].max(rho[1]).max(rho[2]);
+                    }
+                    g
+                },
+            )
+            .reduce(|| g, Gain::merge)
     }
 
     /// The bound over rows `a` then rows `b`: as [`Gain::of_rows`] over both (of equal
@@ -1525,6 +1548,53 @@ mod tests {
             ));
         }
         assert_eq!(residual(&sys, &ok_emit), f64::INFINITY);
+    }
+
+    /// Rows are checked in parallel; the first refused row is the one reported, and the
+    /// gain bound names the first patch where it is reached, however the runs fall.
+    #[test]
+    fn checks_report_the_first_row_whatever_the_threads() {
+        let n = 20_000;
+        let mut t = crate::matrix::Triplets::new((n, n));
+        for i in 0..n {
+            t.add_triplet(i, (i + 1) % n, 0.5);
+        }
+        // Row 6,001 sees itself too much for its reflectance; row 17,000 holds a NaN.
+        t.add_triplet(6_001, 6_001, 1.05);
+        t.add_triplet(17_000, 3, f64::NAN);
+        let f = t.to_csr();
+        let rho = vec![[0.5; 3]; n];
+        let mut rho_bad = rho.clone();
+        rho_bad[6_001] = [0.5, 0.99, 0.5];
+        let (emit, area) = (vec![[1.0; 3]; n], vec![1.0; n]);
+        for threads in [1, 2, 5] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let m = match System::new(&f, &rho_bad, &emit, &area) {
+                    Err(Error::Config(m)) => m,
+                    other => panic!("expected Config, got {other:?}"),
+                };
+                assert!(m.contains("patch 6001") && m.contains("F_ii"), "{m}");
+                let m = match System::new(&f, &rho, &emit, &area) {
+                    Err(Error::Config(m)) => m,
+                    other => panic!("expected Config, got {other:?}"),
+                };
+                assert!(m.contains("F[17000, 3]"), "{m}");
+                // Rows 100 and 15,000 reach the same largest bound; the first is named.
+                let mut g = crate::matrix::Triplets::new((n, n));
+                for i in 0..n {
+                    let v = if i == 100 || i == 15_000 { 0.8 } else { 0.4 };
+                    g.add_triplet(i, (i + 1) % n, v);
+                }
+                let g = g.to_csr();
+                let gain = Gain::of_rows(&rho, &Rows::new(&g), 0);
+                assert_eq!((gain.patch, gain.row_sum), (100, 0.8), "{threads} threads");
+                assert_eq!(gain.gain, [0.4; 3]);
+            });
+        }
     }
 
     #[test]
