@@ -295,7 +295,6 @@ pub fn point_to_polygon_lanes(
     out: &mut [f64; LANES],
 ) -> u32 {
     debug_assert!((3..=MOST_CORNERS).contains(&poly.len()) && xs.len() <= LANES);
-    let m = poly.len();
     let used = xs.len();
     let (mut px, mut py, mut pz) = ([0.0f64; LANES], [0.0f64; LANES], [0.0f64; LANES]);
     for l in 0..LANES {
@@ -303,17 +302,85 @@ pub fn point_to_polygon_lanes(
         let x = xs[if l < used { l } else { 0 }];
         (px[l], py[l], pz[l]) = (x.x, x.y, x.z);
     }
-    let mut rx = [[0.0f64; LANES]; MOST_CORNERS];
-    let mut ry = [[0.0f64; LANES]; MOST_CORNERS];
-    let mut rz = [[0.0f64; LANES]; MOST_CORNERS];
-    let mut len2 = [[0.0f64; LANES]; MOST_CORNERS];
-    let mut all_front = [true; LANES];
-    let mut front = [f64::NEG_INFINITY; LANES];
-    let mut reach2 = [0.0f64; LANES];
+    factor_lanes(
+        poly.len(),
+        n,
+        used,
+        #[inline(always)]
+        |k, l| {
+            let c = poly[k];
+            (c.x - px[l], c.y - py[l], c.z - pz[l])
+        },
+        out,
+    )
+}
+
+/// Polygons evaluated together by [`point_to_polygons_lanes`].
+pub const POLYGON_LANES: usize = 4;
+
+/// [`point_to_polygon_oriented`] from one point `x` to up to [`POLYGON_LANES`] polygons
+/// `polys`, each of 3 to [`MOST_CORNERS`] corners, lane by lane as
+/// [`point_to_polygon_lanes`] goes over points: `out[l]` is
+/// `point_to_polygon_oriented(x, n, polys[l])` bit for bit (test
+/// `polygon_lanes_match_the_scalar_factor_bit_for_bit`), except in the lanes whose bit is
+/// set in the returned mask (a corner behind `x`'s plane: the clipped path, which the
+/// caller takes). A polygon with fewer corners than the most of the batch repeats its
+/// last corner: the edge from it to itself is degenerate and adds `+0.0`, so its edges'
+/// terms are added in the scalar function's order. Lanes past `polys.len()` are left at 0.
+#[inline(always)]
+pub fn point_to_polygons_lanes(
+    x: DVec3,
+    n: DVec3,
+    polys: &[&[DVec3]],
+    out: &mut [f64; POLYGON_LANES],
+) -> u32 {
+    debug_assert!(polys.len() <= POLYGON_LANES && !polys.is_empty());
+    debug_assert!(polys.iter().all(|p| (3..=MOST_CORNERS).contains(&p.len())));
+    let used = polys.len();
+    let m = polys.iter().map(|p| p.len()).max().unwrap_or(3);
+    let mut c = [[DVec3::ZERO; MOST_CORNERS]; POLYGON_LANES];
+    for l in 0..POLYGON_LANES {
+        // Idle lanes repeat the first polygon: their work is discarded.
+        let p = polys[if l < used { l } else { 0 }];
+        for k in 0..m {
+            c[l][k] = p[k.min(p.len() - 1)];
+        }
+    }
+    factor_lanes(
+        m,
+        n,
+        used,
+        #[inline(always)]
+        |k, l| {
+            let c = c[l][k];
+            (c.x - x.x, c.y - x.y, c.z - x.z)
+        },
+        out,
+    )
+}
+
+/// The lanes of [`point_to_polygon_lanes`] and [`point_to_polygons_lanes`]: lane `l` of
+/// `L` is the factor of the polygon whose corner `k` (of `m`), less lane `l`'s point, is
+/// `r(k, l)`, seen from a point of unit normal `n`; in the scalar function's operations and
+/// order. Returns the mask of the lanes (below `used`) that need the clipped path.
+#[inline(always)]
+fn factor_lanes<const L: usize>(
+    m: usize,
+    n: DVec3,
+    used: usize,
+    r: impl Fn(usize, usize) -> (f64, f64, f64),
+    out: &mut [f64; L],
+) -> u32 {
+    let mut rx = [[0.0f64; L]; MOST_CORNERS];
+    let mut ry = [[0.0f64; L]; MOST_CORNERS];
+    let mut rz = [[0.0f64; L]; MOST_CORNERS];
+    let mut len2 = [[0.0f64; L]; MOST_CORNERS];
+    let mut all_front = [true; L];
+    let mut front = [f64::NEG_INFINITY; L];
+    let mut reach2 = [0.0f64; L];
     for k in 0..m {
-        let c = poly[k];
-        for l in 0..LANES {
-            let (x, y, z) = (c.x - px[l], c.y - py[l], c.z - pz[l]);
+        for l in 0..L {
+            let (x, y, z) = r(k, l);
             let d = n.x * x + n.y * y + n.z * z;
             all_front[l] &= d >= 0.0;
             front[l] = front[l].max(d);
@@ -322,10 +389,10 @@ pub fn point_to_polygon_lanes(
             (rx[k][l], ry[k][l], rz[k][l], len2[k][l]) = (x, y, z, q);
         }
     }
-    let mut sum = [0.0f64; LANES];
+    let mut sum = [0.0f64; L];
     for k in 0..m {
         let k1 = if k + 1 == m { 0 } else { k + 1 };
-        for l in 0..LANES {
+        for l in 0..L {
             let (ax, ay, az) = (rx[k][l], ry[k][l], rz[k][l]);
             let (bx, by, bz) = (rx[k1][l], ry[k1][l], rz[k1][l]);
             let (cx, cy, cz) = (ay * bz - by * az, az * bx - bz * ax, ax * by - bx * ay);
@@ -340,7 +407,7 @@ pub fn point_to_polygon_lanes(
         }
     }
     let mut clip = 0u32;
-    for l in 0..LANES {
+    for l in 0..L {
         let zero = front[l] <= 0.0 || front[l] * front[l] <= 1e-24 * reach2[l];
         out[l] = if zero || l >= used {
             0.0
@@ -546,30 +613,78 @@ pub fn gauss_legendre(n: usize) -> Vec<(f64, f64)> {
 mod tests {
     use super::*;
 
+    /// Uniform numbers in [-1, 1) from the stream keyed by `key`.
+    fn uniform(key: u64) -> impl FnMut() -> f64 {
+        let mut rng = crate::sampling::Pcg32::keyed(7, key, 0, 0);
+        move || rng.next_f64() * 2.0 - 1.0
+    }
+
+    /// Lane `l` of a lanes function's answer (`clip` mask, value `got`) for the point `x`
+    /// of normal `n` and the polygon `poly`: the clipped path asked for exactly when a
+    /// corner is behind `x`'s plane, else the scalar factor bit for bit (counted in
+    /// `checked` by whether it is 0).
+    fn check_lane(
+        (clip, l, got): (u32, usize, f64),
+        x: DVec3,
+        n: DVec3,
+        poly: &[DVec3],
+        checked: &mut [usize; 2],
+        what: &str,
+    ) {
+        let front = poly.iter().all(|&p| n.dot(p - x) >= 0.0);
+        assert_eq!(clip >> l & 1 == 0, front, "{what}");
+        if front {
+            let want = point_to_polygon_oriented(x, n, poly);
+            assert_eq!(
+                got.to_bits(),
+                want.to_bits(),
+                "{what}: {got} against {want}"
+            );
+            checked[usize::from(want != 0.0)] += 1;
+        }
+    }
+
+    /// The scale and shift of the lane tests' case `case`: tiny, unit and huge polygons, at
+    /// the origin, near it and far from it.
+    fn placement(u: &mut impl FnMut() -> f64, case: usize) -> (f64, DVec3) {
+        let scale = [1e-6, 1.0, 1e6][case % 3];
+        let shift = DVec3::new(u(), u(), u()) * [0.0, 10.0, 1e7][case / 3 % 3];
+        (scale, shift)
+    }
+
+    /// A planar polygon of `corners` (3 to 5) corners jittered about a convex pentagon's,
+    /// moved by `lift`, then scaled and shifted; in the other winding when `reverse`.
+    fn test_polygon(
+        u: &mut impl FnMut() -> f64,
+        corners: usize,
+        lift: DVec3,
+        (scale, shift): (f64, DVec3),
+        reverse: bool,
+    ) -> Vec<DVec3> {
+        let mut poly: Vec<DVec3> = [(0.0, 0.0), (1.0, 0.1), (1.1, 0.7), (0.9, 1.2), (-0.1, 0.8)]
+            .iter()
+            .take(corners)
+            .map(|&(a, b)| (DVec3::new(a + 0.2 * u(), b + 0.2 * u(), 0.0) + lift) * scale + shift)
+            .collect();
+        if reverse {
+            poly.reverse();
+        }
+        poly
+    }
+
     /// The lanes give the scalar factor bit for bit at every vector width, on points in
     /// general position and on the awkward ones: on a corner, on an edge's line, in the
     /// polygon's plane, behind it (those lanes must ask for the clipped path), far away.
     #[test]
     fn lanes_match_the_scalar_factor_bit_for_bit() {
-        use crate::sampling::Pcg32;
         use crate::simd::{set_limit, with_widest, Width};
-        let mut rng = Pcg32::keyed(7, 11, 0, 0);
-        let mut u = || rng.next_f64() * 2.0 - 1.0;
+        let mut u = uniform(11);
         let mut checked = [0usize; 2];
         for case in 0..400 {
-            let scale = [1e-6, 1.0, 1e6][case % 3];
-            let shift = DVec3::new(u(), u(), u()) * [0.0, 10.0, 1e7][case / 3 % 3];
+            let (scale, shift) = placement(&mut u, case);
             // Triangles, quadrilaterals and pentagons (a quadrilateral clipped by a plane).
             let corners = 3 + case / 9 % 3;
-            let mut poly: Vec<DVec3> =
-                [(0.0, 0.0), (1.0, 0.1), (1.1, 0.7), (0.9, 1.2), (-0.1, 0.8)]
-                    .iter()
-                    .take(corners)
-                    .map(|&(a, b)| (DVec3::new(a + 0.2 * u(), b + 0.2 * u(), 0.0) * scale) + shift)
-                    .collect();
-            if case % 5 == 0 {
-                poly.reverse();
-            }
+            let poly = test_polygon(&mut u, corners, DVec3::ZERO, (scale, shift), case % 5 == 0);
             let n = DVec3::new(u(), u(), u()).normalize();
             let mut xs: Vec<DVec3> = (0..13)
                 .map(|_| DVec3::new(u(), u(), u() * 2.0) * scale * 2.0 + shift)
@@ -588,18 +703,8 @@ mod tests {
                         || point_to_polygon_lanes(chunk, n, &poly, &mut out),
                     );
                     for (l, &x) in chunk.iter().enumerate() {
-                        let front = poly.iter().all(|&p| n.dot(p - x) >= 0.0);
-                        assert_eq!(clip >> l & 1 == 0, front, "case {case} lane {l} at {w}");
-                        if front {
-                            let want = point_to_polygon_oriented(x, n, &poly);
-                            assert_eq!(
-                                out[l].to_bits(),
-                                want.to_bits(),
-                                "case {case} lane {l} at {w}: {} against {want}",
-                                out[l]
-                            );
-                            checked[usize::from(want != 0.0)] += 1;
-                        }
+                        let what = format!("case {case} lane {l} at {w}");
+                        check_lane((clip, l, out[l]), x, n, &poly, &mut checked, &what);
                     }
                     assert!(out[chunk.len()..].iter().all(|&v| v == 0.0));
                 }
@@ -608,6 +713,50 @@ mod tests {
         set_limit(Width::Avx512);
         // Both outcomes were exercised.
         assert!(checked[0] > 100 && checked[1] > 1000, "{checked:?}");
+    }
+
+    /// One point against batches of polygons of 3 to 5 corners, mixed within a batch (the
+    /// shorter repeat their last corner): the scalar factor bit for bit at every vector
+    /// width, in general position and from a corner, an edge's line, the plane, behind.
+    #[test]
+    fn polygon_lanes_match_the_scalar_factor_bit_for_bit() {
+        use crate::simd::{set_limit, with_widest, Width};
+        let mut u = uniform(12);
+        let mut checked = [0usize; 2];
+        for case in 0..600 {
+            let (scale, shift) = placement(&mut u, case);
+            let used = 1 + case % POLYGON_LANES;
+            let polys: Vec<Vec<DVec3>> = (0..used)
+                .map(|q| {
+                    let corners = 3 + (case + q) % 3;
+                    let lift = DVec3::new(0.3 * q as f64, 0.1, 0.2 * u());
+                    test_polygon(&mut u, corners, lift, (scale, shift), (case + q) % 5 == 0)
+                })
+                .collect();
+            let refs: Vec<&[DVec3]> = polys.iter().map(|p| p.as_slice()).collect();
+            let n = DVec3::new(u(), u(), u()).normalize();
+            let x = match case % 7 {
+                0 => polys[0][1],
+                1 => polys[0][0] + (polys[0][1] - polys[0][0]) * 2.5,
+                2 => (polys[0][0] + polys[0][2]) * 0.5,
+                _ => DVec3::new(u(), u(), u() * 2.0) * scale * 2.0 + shift,
+            };
+            for w in Width::ALL.into_iter().filter(|w| w.supported()) {
+                set_limit(w);
+                let mut out = [f64::NAN; POLYGON_LANES];
+                let clip = with_widest(
+                    #[inline(always)]
+                    || point_to_polygons_lanes(x, n, &refs, &mut out),
+                );
+                for (l, poly) in polys.iter().enumerate() {
+                    let what = format!("case {case} lane {l} at {w}");
+                    check_lane((clip, l, out[l]), x, n, poly, &mut checked, &what);
+                }
+                assert!(out[used..].iter().all(|&v| v == 0.0));
+            }
+        }
+        set_limit(Width::Avx512);
+        assert!(checked[0] > 10 && checked[1] > 1000, "{checked:?}");
     }
 
     #[test]

@@ -56,7 +56,8 @@ use std::sync::OnceLock;
 use glam::DVec3;
 
 use crate::analytic::{
-    gauss_legendre, point_to_polygon_lanes, point_to_polygon_oriented, LANES, MOST_CORNERS,
+    gauss_legendre, point_to_polygon_lanes, point_to_polygon_oriented, point_to_polygons_lanes,
+    LANES, MOST_CORNERS, POLYGON_LANES,
 };
 
 /// A parameter map of (part of) an emitter over the unit square.
@@ -533,6 +534,38 @@ pub fn point_factors(xs: &[DVec3], n_x: DVec3, r: &Receiver, out: &mut Vec<f64>)
                     });
                 }
             }
+        },
+    )
+}
+
+/// [`point_factor`] from one point `x` to each receiver of `rs` (at most
+/// [`POLYGON_LANES`]), bit for bit the same values, the receivers side by side
+/// ([`point_to_polygons_lanes`], at the widest vector width of
+/// [`crate::simd::with_widest`]).
+pub fn point_factors_to<const K: usize>(x: DVec3, n_x: DVec3, rs: &[Receiver; K]) -> [f64; K] {
+    const { assert!(K <= POLYGON_LANES) };
+    if rs
+        .iter()
+        .any(|r| !(3..=MOST_CORNERS).contains(&r.poly.len()))
+    {
+        return rs.each_ref().map(|r| point_factor(x, n_x, r));
+    }
+    crate::simd::with_widest(
+        #[inline(always)]
+        || {
+            let polys: [&[DVec3]; K] = rs.each_ref().map(|r| r.poly);
+            let mut lane = [0.0; POLYGON_LANES];
+            let clip = point_to_polygons_lanes(x, n_x, &polys, &mut lane);
+            std::array::from_fn(|l| {
+                let r = &rs[l];
+                if behind(x, r) {
+                    0.0
+                } else if clip >> l & 1 == 1 {
+                    r.front(point_to_polygon_oriented(x, n_x, r.poly))
+                } else {
+                    r.front(lane[l])
+                }
+            })
         },
     )
 }

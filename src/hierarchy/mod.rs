@@ -1981,11 +1981,11 @@ fn kernel_weighting_error(
 ) -> f64 {
     let (x, n) = (e.centre[l], e.normal[l]);
     let kids = e.children(s);
-    let seen = kids.map(|c| {
+    let polys = kids.map(|c| {
         let ci = c as usize;
-        let poly = exact::Receiver::new(e.corners(c), e.normal[ci], e.centre[ci]);
-        exact::point_factor(x, n, &poly)
+        exact::Receiver::new(e.corners(c), e.normal[ci], e.centre[ci])
     });
+    let seen = exact::point_factors_to(x, n, &polys);
     let (total, area) = (
         seen.iter().sum::<f64>(),
         kids.iter().map(|&c| e.area[c as usize]).sum::<f64>(),
