@@ -343,7 +343,7 @@ pub fn repair_rows_from(f: &Csr, rho: &[[f64; 3]], lo: usize) -> Option<(Csr, Ro
     let (ptr, val) = (f.indptr(), f.data());
     let sums: Vec<f64> = (0..f.rows())
         .into_par_iter()
-        .with_min_len(1024)
+        .with_min_len(ROWS_PER_TASK)
         .map(|r| val[ptr.index(r)..ptr.index(r + 1)].iter().sum())
         .collect();
     for (r, &sum) in sums.iter().enumerate() {
@@ -370,6 +370,10 @@ pub fn repair_rows_from(f: &Csr, rho: &[[f64; 3]], lo: usize) -> Option<(Csr, Ro
     }
     Some((g, rep))
 }
+
+/// Fewest rows a thread takes at a time in the parallel checks over a matrix's rows (row
+/// sums, ranges, the solver's checks: each row a few hundred additions).
+pub(crate) const ROWS_PER_TASK: usize = 1024;
 
 /// Sorts a row's entries by column and merges duplicates (adding values, and bars as
 /// [`Bar::plus`]; the built-in estimators never make duplicates).

@@ -34,7 +34,7 @@
 //! counted as a standard error: the repair's shift is a least-squares correction, not a
 //! deterministic one).
 
-use crate::matrix::{sum_bar, Bar, Csr, FormFactors};
+use crate::matrix::{sum_bar, Bar, Csr, FormFactors, ROWS_PER_TASK};
 
 /// Which constraints [`repair`] enforces (also the command line's `--repair` values).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
@@ -142,10 +142,6 @@ pub fn check_rows(f: &Csr, se: &[f32], lo: usize) -> Bounds {
             a
         })
 }
-
-/// Fewest rows a thread takes at a time in the checks' passes over the matrix (each row
-/// is a few hundred additions).
-const ROWS_PER_TASK: usize = 1024;
 
 /// What [`repair`] changed.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -394,10 +390,6 @@ mod tests {
         assert_eq!(fixed.f.nnz(), ff.f.nnz());
     }
 
-    /// A row 0.3 over 1 whose noisiest entry is small: the unconstrained shift would take it
-    /// to 0.01 - 0.3 × 0.1² / (0.1² + 2 × 0.01²) < 0. It is held at 0, and the two others
-    /// share the rest of the excess equally (equal bars), so the row sums to 1 with every
-    /// entry in [0, 1].
     /// Rows are checked in parallel runs; what is found comes out in row order, as one
     /// pass would list it, however the runs fall.
     #[test]
@@ -425,6 +417,10 @@ mod tests {
         assert_eq!(got, [3, 8_191, 15_000]);
     }
 
+    /// A row 0.3 over 1 whose noisiest entry is small: the unconstrained shift would take it
+    /// to 0.01 - 0.3 × 0.1² / (0.1² + 2 × 0.01²) < 0. It is held at 0, and the two others
+    /// share the rest of the excess equally (equal bars), so the row sums to 1 with every
+    /// entry in [0, 1].
     #[test]
     fn closure_keeps_entries_non_negative() {
         let ff = matrix(

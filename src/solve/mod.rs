@@ -96,7 +96,7 @@ use std::fmt;
 use std::str::FromStr;
 use std::time::Instant;
 
-use crate::matrix::Csr;
+use crate::matrix::{Csr, ROWS_PER_TASK};
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
@@ -261,7 +261,7 @@ pub(crate) fn check_matrix(f: &Csr, lo: usize, rho: &[[f64; 3]]) -> Result<()> {
     // Rows in parallel; the first row refused is reported, whatever the threads.
     let bad = (0..f.rows())
         .into_par_iter()
-        .with_min_len(1024)
+        .with_min_len(ROWS_PER_TASK)
         .find_first(|&r| row(r).map_or(true, |fii| worst(r, fii) >= 1.0));
     let Some(r) = bad else {
         return Ok(());
@@ -728,7 +728,7 @@ impl Gain {
         // equal bounds), so the patch named is the same whatever the threads.
         (0..rows.len())
             .into_par_iter()
-            .with_min_len(1024)
+            .with_min_len(ROWS_PER_TASK)
             .fold(
                 || g,
                 |mut g, r| {
