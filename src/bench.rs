@@ -540,7 +540,7 @@ pub fn stages(
 ) -> Result<StageReport> {
     let cpu0 = crate::cluster::cpu_seconds();
     let mut st = Stages(Vec::new());
-    let scene = st.run("load", || Scene::load(scene))?;
+    let scene = st.run("load", || crate::pipeline::load_scene(scene, false))?;
     let patches = st.run("mesh", || PatchSet::build(&scene, resolution))?;
     let vis = st.run("bvh", || Visibility::new(&patches))?;
     let est = choice.build();
@@ -922,7 +922,7 @@ pub fn run(cfg: &BenchConfig, print: &mut dyn FnMut(&str)) -> Result<()> {
     let pool = pool(threads, cfg.ftz)?;
     crate::simd::set_limit(cfg.simd);
     if cfg.scaling.is_empty() {
-        let scene = Scene::load(&cfg.scene)?;
+        let scene = crate::pipeline::load_scene(&cfg.scene, false)?;
         let patches = PatchSet::build(&scene, Resolution::Patches(cfg.patches))?;
         let mut vis = Visibility::new(&patches)?;
         if let Some(w) = cfg.packets {

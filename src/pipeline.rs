@@ -329,12 +329,15 @@ pub fn check_budget(
 const BLIND_SHARE: f64 = 0.1;
 
 /// Loads a scene by name or path ([`Scene::load`], which makes the faces of `#@two-sided`
-/// materials two-sided) and makes every face two-sided when `two_sided`.
+/// materials two-sided), makes every face two-sided when `two_sided`, and then raises
+/// the faces (sides) that lie on other faces facing the same way
+/// ([`Scene::raise_coincident`]).
 pub fn load_scene(name: &str, two_sided: bool) -> Result<Scene> {
     let mut scene = Scene::load(name)?;
     if two_sided {
         scene.make_two_sided(true);
     }
+    scene.raise_coincident();
     Ok(scene)
 }
 
@@ -1073,11 +1076,13 @@ pub fn factors_on(
         )
     });
     let provenance = provenance?;
-    let warnings = warnings
+    // The loader's warnings, then one about the normals (the early one, or else the
+    // blind patches': they tell the same thing).
+    let normals = warnings
         .into_iter()
         .chain(blind_warning(blind_patches(&patches, &ff), patches.len()))
-        .take(1)
-        .collect();
+        .take(1);
+    let warnings = scene.warnings.iter().cloned().chain(normals).collect();
     Ok(Some(FactorsSummary {
         provenance,
         diagnostics,

@@ -314,3 +314,85 @@ fn patches_that_see_nothing_are_told_about_two_sided_faces() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The unit cube wound inward with a rug, a square `[0.25, 0.75]²` of another object, lying
+/// on its floor `z = 0` and facing the same way; `two_sided` adds `#@two-sided` to the MTL.
+fn cube_with_rug(dir: &std::path::Path, two_sided: bool) -> String {
+    let obj = "mtllib cube.mtl\nusemtl wall\n\
+        v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nv 1 0 1\nv 1 1 1\nv 0 1 1\n\
+        o z0\nf 1 2 3 4\no z1\nf 5 8 7 6\no y0\nf 1 5 6 2\no y1\nf 4 3 7 8\n\
+        o x0\nf 1 4 8 5\no x1\nf 2 6 7 3\n\
+        v 0.25 0.25 0\nv 0.75 0.25 0\nv 0.75 0.75 0\nv 0.25 0.75 0\no rug\nf 9 10 11 12\n";
+    std::fs::write(dir.join("cube.obj"), obj).expect("obj");
+    let flag = if two_sided { "#@two-sided\n" } else { "" };
+    std::fs::write(
+        dir.join("cube.mtl"),
+        format!("newmtl wall\n{flag}Kd 0.5 0.5 0.5\nKe 1 1 1\n"),
+    )
+    .expect("mtl");
+    dir.join("cube.obj").to_string_lossy().into_owned()
+}
+
+/// A face lying on another and facing the same way (a rug on the floor) would receive the
+/// light of the place it covers a second time: rows of the closed cube would sum to
+/// `1 + F(wall -> rug)`, and the floor under the rug would see the room through it. Raised
+/// off the floor, the rug covers it: every row of the closed room sums to 1 (the
+/// enclosure rule) within its bar, and the floor under the rug sees nothing. Both with
+/// one-sided faces and with two-sided ones (where the rug's underside lies on the floor's
+/// outside as well).
+#[test]
+fn a_rug_lying_on_the_floor_covers_it_and_the_room_stays_closed() {
+    for two_sided in [false, true] {
+        let dir = temp_dir(if two_sided { "rug2" } else { "rug1" });
+        let path = cube_with_rug(&dir, two_sided);
+        let scene = pipeline::load_scene(&path, false).expect("scene");
+        let raised: Vec<&String> = scene
+            .warnings
+            .iter()
+            .filter(|w| w.contains("lay on other faces facing the same way"))
+            .collect();
+        assert_eq!(raised.len(), 1, "{:?}", scene.warnings);
+        let expect = if two_sided { "2 face(s)" } else { "1 face(s)" };
+        assert!(raised[0].contains(expect), "{}", raised[0]);
+        let patches = PatchSet::build(&scene, Resolution::MaxEdge(0.25)).expect("patches");
+        let semi = EstimatorChoice::SemiAnalytic {
+            points: 4,
+            rays: 4,
+            replicates: 8,
+            tol: 1e-9,
+        };
+        let (ff, _, _) = pipeline::form_factors(&patches, &semi, 7, &Quiet).expect("factors");
+        // The sides facing into the room: the faces as written (the backs face out).
+        let inside = |i: usize| !scene.faces[patches.face[i] as usize].back;
+        let rug = |i: usize| scene.objects[patches.object[i] as usize] == "rug";
+        let c = patches.centroid.clone();
+        let under_rug = |i: usize| {
+            !rug(i)
+                && c[i].z.abs() < 1e-9
+                && (0.25..0.75).contains(&c[i].x)
+                && (0.25..0.75).contains(&c[i].y)
+        };
+        let (mut rows, mut worst) = (0, 0.0f64);
+        for i in (0..patches.len()).filter(|&i| inside(i)) {
+            let s = ff.row_sum(i);
+            if under_rug(i) {
+                assert!(s < 0.01, "floor patch {i} under the rug sees {s}");
+                continue;
+            }
+            // 4 standard errors over at most 100 rows: a chance failure is below 1%.
+            let bar = ff.row_sum_bar(i);
+            let gap = (s - 1.0).abs();
+            assert!(
+                gap <= 4.0 * bar.se + bar.bound + 2e-3,
+                "two-sided {two_sided}: row {i} sums to {s} ({bar:?})"
+            );
+            worst = worst.max(gap);
+            rows += 1;
+        }
+        eprintln!(
+            "rug on the floor (two-sided {two_sided}): {rows} rows, worst |sum - 1| {worst:.2e}"
+        );
+        assert!(rows >= 5 * 16 + 4, "{rows}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

@@ -278,7 +278,12 @@ impl PatchSet {
             let start = set.len();
             let layout = match range.get(face.twin as usize) {
                 Some(&(a, b)) if face.back => {
-                    set.add_back(a..b, face, fi as u32);
+                    // Corner 0 is the same corner on both sides; a side raised off a face
+                    // it lay on (`Scene::raise_coincident`) is that far off the other.
+                    let front = &scene.faces[face.twin as usize];
+                    let shift = scene.positions[face.corners[0] as usize]
+                        - scene.positions[front.corners[0] as usize];
+                    set.add_back(a..b, face, fi as u32, shift);
                     Layout::Back { front: face.twin }
                 }
                 _ => set.add_face(scene, fi as u32, face, max_edge),
@@ -385,10 +390,11 @@ impl PatchSet {
     }
 
     /// The back of a two-sided face: a copy of the patches `front` (its twin's) with their
-    /// corners wound the other way (corner 0 first), on vertices of its own, so each back
-    /// patch lies exactly on its front patch and its triangles on the front's triangles
+    /// corners wound the other way (corner 0 first), on vertices of its own moved by
+    /// `shift`, so each back patch lies exactly on its front patch (`shift` zero, unless
+    /// one side was raised off a face it lay on) and its triangles on the front's triangles
     /// (the same diagonal). Front and back are each other's [`PatchSet::twin`].
-    fn add_back(&mut self, front: std::ops::Range<usize>, face: &Face, fi: u32) {
+    fn add_back(&mut self, front: std::ops::Range<usize>, face: &Face, fi: u32, shift: DVec3) {
         if self.twin.len() < self.len() {
             self.twin.resize(self.len(), NONE);
         }
@@ -397,7 +403,7 @@ impl PatchSet {
             let c = self.corners[p];
             let mut v = |k: u32| -> u32 {
                 *copy.entry(k).or_insert_with(|| {
-                    self.vertices.push(self.vertices[k as usize]);
+                    self.vertices.push(self.vertices[k as usize] + shift);
                     (self.vertices.len() - 1) as u32
                 })
             };

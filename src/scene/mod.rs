@@ -10,6 +10,7 @@
 //! patches or rays: the `mesh` module turns a scene into patches.
 
 pub mod builtin;
+pub mod coincident;
 pub mod generated;
 pub mod obj;
 pub mod polygon;
@@ -571,7 +572,9 @@ impl Scene {
         Ok(())
     }
 
-    /// Loads a scene by built-in name or by path to an OBJ file.
+    /// Loads a scene by built-in name or by path to an OBJ file, as written (the
+    /// pipeline's `load_scene` then makes faces two-sided as asked and raises faces lying
+    /// on others, [`Scene::raise_coincident`]).
     pub fn load(name_or_path: &str) -> Result<Scene> {
         if let Some(scene) = builtin::load(name_or_path)? {
             return Ok(scene);

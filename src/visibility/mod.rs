@@ -621,6 +621,14 @@ impl Traced {
             back: Vec::new(),
             wholes: Vec::new(),
         };
+        // The back of a two-sided face lies on its front unless one side was raised off a
+        // face it lay on (`Scene::raise_coincident`); then each side is traced on its own.
+        let lies_on = |back: u32| {
+            let b = back as usize;
+            patches.twin_of(b).is_some_and(|f| {
+                v[patches.corners[b][0] as usize] == v[patches.corners[f][0] as usize]
+            })
+        };
         let mut whole_of = vec![NO_HIT; patches.grids.len()];
         let fits = patches.grids.len() < (WHOLE / 2) as usize;
         for (fi, g) in patches.grids.iter().enumerate() {
@@ -661,7 +669,7 @@ impl Traced {
                 }
             } else if let Layout::Back { front } = g.layout {
                 let wf = whole_of[front as usize];
-                if wf != NO_HIT {
+                if wf != NO_HIT && lies_on(g.first) {
                     // Front and back of a two-sided face lie on each other: the front's
                     // triangles serve both, a ray meeting their back side having met the
                     // back face's front.
@@ -673,15 +681,23 @@ impl Traced {
         for (tri, &p) in patches.triangles.iter().zip(&patches.tri_patch) {
             let face = patches.face[p as usize] as usize;
             let on_whole = match patches.grids.get(face).map(|g| g.layout) {
-                Some(Layout::Back { front }) => whole_of[front as usize] != NO_HIT,
+                Some(Layout::Back { front }) => {
+                    whole_of[front as usize] != NO_HIT && lies_on(patches.grids[face].first)
+                }
                 Some(_) => whole_of[face] != NO_HIT,
                 None => false,
             };
             if !on_whole {
                 // Both sides of a two-sided face are traced, lying on each other: a ray
                 // meets both at one distance and Embree reports either; from the back of
-                // one it has met the front of the other.
-                let twin = patches.twin_of(p as usize).map_or(NO_HIT, |t| t as u32);
+                // one it has met the front of the other (not so when they lie apart).
+                let twin = patches
+                    .twin_of(p as usize)
+                    .filter(|&t| {
+                        v[patches.corners[t][0] as usize]
+                            == v[patches.corners[p as usize][0] as usize]
+                    })
+                    .map_or(NO_HIT, |t| t as u32);
                 add(&mut t, *tri, p, normal[p as usize], twin);
             }
         }
@@ -729,6 +745,34 @@ f 1 2 3 4\nf 5 6 7 8\nf 9 10 11 12\nf 13 14 15\nf 16 17 18 19\n";
         let mut s = obj::parse("faces", Path::new("faces.obj"), text, &|_| unreachable!()).unwrap();
         s.make_two_sided(two_sided);
         s
+    }
+
+    /// A two-sided box on a two-sided floor: the inside of the box's bottom, raised off the
+    /// floor it lay on (`Scene::raise_coincident`), is traced on its own, not as the back
+    /// of its outside (now lowered below the floor): a segment from the box's lid down to
+    /// the floor under the box is blocked, and a first-hit ray from the lid meets the
+    /// bottom's inside.
+    #[test]
+    fn a_raised_inside_of_a_two_sided_face_is_traced_where_it_lies() {
+        let text = "o floor\nv -2 0 -2\nv -2 0 2\nv 2 0 2\nv 2 0 -2\nf 1 2 3 4\n\
+             o box\nv 0 0 0\nv 1 0 0\nv 1 0 1\nv 0 0 1\nv 0 1 0\nv 1 1 0\nv 1 1 1\nv 0 1 1\n\
+             f 5 6 7 8\nf 9 12 11 10\nf 5 9 10 6\nf 6 10 11 7\nf 7 11 12 8\nf 8 12 9 5\n";
+        let mut s = obj::parse("box", Path::new("box.obj"), text, &|_| unreachable!()).unwrap();
+        s.make_two_sided(true);
+        assert_eq!(s.raise_coincident().len(), 2);
+        let patches = PatchSet::build(&s, Resolution::Patches(1)).unwrap();
+        let vis = Visibility::new(&patches).unwrap();
+        let (lid, floor) = (DVec3::new(0.5, 1.0, 0.5), DVec3::new(0.3, 0.0, 0.6));
+        let seg = vis.segment_ray(lid, DVec3::NEG_Y, floor, DVec3::Y);
+        let mut free = [true];
+        vis.segments_visible(&[seg], &mut free);
+        assert!(!free[0], "the floor under the box is seen from inside it");
+        let hit = vis
+            .first_hit(lid, DVec3::NEG_Y, DVec3::NEG_Y)
+            .expect("a hit");
+        let inside = s.faces[1].twin;
+        assert_eq!(patches.face[hit.patch as usize], inside, "{hit:?}");
+        assert!(patches.centroid[hit.patch as usize].y > 0.0);
     }
 
     /// Inside the closed unit cube every segment between two of its faces is free, even
