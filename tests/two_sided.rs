@@ -338,8 +338,7 @@ fn cube_with_rug(dir: &std::path::Path, two_sided: bool) -> String {
 /// `1 + F(wall -> rug)`, and the floor under the rug would see the room through it. Raised
 /// off the floor, the rug covers it: every row of the closed room sums to 1 (the
 /// enclosure rule) within its bar, and the floor under the rug sees nothing. Both with
-/// one-sided faces and with two-sided ones (where the rug's underside lies on the floor's
-/// outside as well).
+/// one-sided faces and with two-sided ones.
 #[test]
 fn a_rug_lying_on_the_floor_covers_it_and_the_room_stays_closed() {
     for two_sided in [false, true] {
@@ -352,8 +351,9 @@ fn a_rug_lying_on_the_floor_covers_it_and_the_room_stays_closed() {
             .filter(|w| w.contains("lay on other faces facing the same way"))
             .collect();
         assert_eq!(raised.len(), 1, "{:?}", scene.warnings);
-        let expect = if two_sided { "2 face(s)" } else { "1 face(s)" };
-        assert!(raised[0].contains(expect), "{}", raised[0]);
+        // Two-sided, the rug's underside lies on the floor's outside, which nothing sees:
+        // only the rug's top is raised.
+        assert!(raised[0].contains("1 face(s)"), "{}", raised[0]);
         let patches = PatchSet::build(&scene, Resolution::MaxEdge(0.25)).expect("patches");
         let semi = EstimatorChoice::SemiAnalytic {
             points: 4,
