@@ -255,6 +255,7 @@ impl Scene {
         }
         // Upper face of each pair, the face under it and the overlap.
         let mut pairs: Vec<(usize, usize, f64)> = Vec::new();
+        let mut seen_from: Vec<Option<bool>> = vec![None; self.faces.len()];
         for (k, &a) in order.iter().enumerate() {
             for &b in &order[k + 1..] {
                 if planes[b].lo[axis] > planes[a].hi[axis] + touch {
@@ -268,7 +269,10 @@ impl Scene {
                 let Some(overlap) = self.coincidence(a, b, &planes[a], &planes[b], touch) else {
                     continue;
                 };
-                if !self.seen(&planes[a], touch, (lo, hi)) {
+                // Once per face: a face may lie on many (a stack, a tessellated floor).
+                let seen =
+                    *seen_from[a].get_or_insert_with(|| self.seen(&planes[a], touch, (lo, hi)));
+                if !seen {
                     continue;
                 }
                 let (fa, fb) = (&self.faces[a], &self.faces[b]);

@@ -623,10 +623,11 @@ impl Traced {
         };
         // The back of a two-sided face lies on its front unless one side was raised off a
         // face it lay on (`Scene::raise_coincident`); then each side is traced on its own.
-        let lies_on = |back: u32| {
-            let b = back as usize;
-            patches.twin_of(b).is_some_and(|f| {
-                v[patches.corners[b][0] as usize] == v[patches.corners[f][0] as usize]
+        // (Patch `p` and its twin, when it has one, share corner 0's position.)
+        let lies_on = |p: u32| {
+            let p = p as usize;
+            patches.twin_of(p).is_some_and(|t| {
+                v[patches.corners[p][0] as usize] == v[patches.corners[t][0] as usize]
             })
         };
         let mut whole_of = vec![NO_HIT; patches.grids.len()];
@@ -693,10 +694,7 @@ impl Traced {
                 // one it has met the front of the other (not so when they lie apart).
                 let twin = patches
                     .twin_of(p as usize)
-                    .filter(|&t| {
-                        v[patches.corners[t][0] as usize]
-                            == v[patches.corners[p as usize][0] as usize]
-                    })
+                    .filter(|_| lies_on(p))
                     .map_or(NO_HIT, |t| t as u32);
                 add(&mut t, *tri, p, normal[p as usize], twin);
             }
