@@ -3,9 +3,12 @@
 //! with other work, the minimum is what the code costs when nothing else runs, where the
 //! median of `radiosity bench` moves with the load (docs/PERFORMANCE.md, section 1).
 //!
-//! `cargo run --release --example stage_min -- ESTIMATOR PATCHES THREADS REPEATS`, with
-//! ESTIMATOR `area` (stratified, 4 x 4 x 4 pairs, as the bench) or `hemisphere` (16 x 16 x
-//! 4 rays), on the Cornell box.
+//! `cargo run --release --example stage_min -- ESTIMATOR PATCHES THREADS REPEATS
+//! [triangles]`, with ESTIMATOR `area` (stratified, 4 x 4 x 4 pairs, as the bench) or
+//! `hemisphere` (16 x 16 x 4 rays), on the Cornell box. With `triangles`, the stage and the
+//! loop are also timed on the scene of the patches' own triangles (what the flat path
+//! traced before its faces were traced whole), and the stage on the faces is set against
+//! that loop too.
 
 use std::time::Instant;
 
@@ -21,6 +24,7 @@ fn main() {
     let arg =
         |k: usize, default: usize| args.get(k).and_then(|s| s.parse().ok()).unwrap_or(default);
     let (patches, threads, repeats) = (arg(1, 400), arg(2, 1), arg(3, 25));
+    let triangles = args.get(4).is_some_and(|s| s == "triangles");
     let choice = match args.first().map(String::as_str) {
         Some("hemisphere") => EstimatorChoice::Hemisphere {
             strata: 16,
@@ -34,11 +38,18 @@ fn main() {
     let scene = Scene::load("cornell").expect("built-in scene");
     let p = PatchSet::build(&scene, Resolution::Patches(patches)).expect("mesh");
     let vis = Visibility::new(&p).expect("Embree scene");
+    // The same patches without their face grids: traced by their triangles.
+    let vis_t = Visibility::new(&PatchSet {
+        grids: Vec::new(),
+        ..p.clone()
+    })
+    .expect("Embree scene");
     let ctx = Context {
         patches: &p,
         vis: &vis,
         seed: 1,
     };
+    let ctx_t = Context { vis: &vis_t, ..ctx };
     let pool = pool(threads, true).expect("thread pool");
     pool.install(|| {
         let est = choice.build();
@@ -47,19 +58,33 @@ fn main() {
         let rays = formfactor::compute(&ctx, est.as_ref(), &|_| {}).rays;
         // Samples of about 50 ms: short enough to find quiet moments.
         let k = ((0.05 / t.elapsed().as_secs_f64()).ceil() as usize).max(1);
-        let (mut stage, mut raw) = (f64::INFINITY, f64::INFINITY);
+        // The smallest time of: the stage, the loop, and (with `triangles`) both on the
+        // patch triangles.
+        let mut best = [f64::INFINITY; 4];
+        let mut time = |slot: usize, f: &dyn Fn()| {
+            let t = Instant::now();
+            for _ in 0..k {
+                f();
+            }
+            best[slot] = best[slot].min(t.elapsed().as_secs_f64() / k as f64);
+        };
         for _ in 0..repeats {
-            let t = Instant::now();
-            for _ in 0..k {
-                drop(formfactor::compute(&ctx, est.as_ref(), &|_| {}));
-            }
-            stage = stage.min(t.elapsed().as_secs_f64() / k as f64);
-            let t = Instant::now();
-            for _ in 0..k {
+            time(0, &|| {
+                drop(formfactor::compute(&ctx, est.as_ref(), &|_| {}))
+            });
+            time(1, &|| {
                 std::hint::black_box(raw_loop16(ctx.vis, &rec));
+            });
+            if triangles {
+                time(2, &|| {
+                    drop(formfactor::compute(&ctx_t, est.as_ref(), &|_| {}))
+                });
+                time(3, &|| {
+                    std::hint::black_box(raw_loop16(ctx_t.vis, &rec));
+                });
             }
-            raw = raw.min(t.elapsed().as_secs_f64() / k as f64);
         }
+        let [stage, raw, stage_t, raw_t] = best;
         println!(
             "{} patches={} rays={rays} threads={threads} stage_min={:.3} ms \
              raw16_min={:.3} ms raw16_min/stage_min={:.4}",
@@ -69,5 +94,15 @@ fn main() {
             raw * 1e3,
             raw / stage
         );
+        if triangles {
+            println!(
+                "patch triangles: stage_min={:.3} ms raw16_min={:.3} ms \
+                 raw16_min/stage_min={:.4}; their raw16_min over the faces' stage_min={:.4}",
+                stage_t * 1e3,
+                raw_t * 1e3,
+                raw_t / stage_t,
+                raw_t / stage
+            );
+        }
     });
 }
