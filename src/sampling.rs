@@ -10,6 +10,8 @@
 //! whose words are independent of each other and so come out of vector passes. Random
 //! pairings of strata use Kensler's hashed permutation ([`hashed_permutation`]).
 
+use glam::DVec3;
+
 /// SplitMix64 finaliser: a bijective 64-bit mix.
 #[inline]
 pub fn mix64(mut z: u64) -> u64 {
@@ -316,9 +318,154 @@ pub fn hashed_permutation(perm: &mut [u32], key: u32, offset: u32) {
     }
 }
 
+/// The spherical triangle that a planar triangle subtends from a point, for directions
+/// drawn uniformly in its solid angle (Arvo, "Stratified sampling of spherical triangles",
+/// SIGGRAPH 1995): a map of the unit square onto the triangle that preserves area, so that
+/// jittered strata of the square stay strata of the solid angle.
+#[derive(Clone, Copy, Debug)]
+pub struct SphericalTriangle {
+    a: DVec3,
+    b: DVec3,
+    /// Unit tangent at `a` along the arc towards `c`.
+    toward_c: DVec3,
+    /// The angle at `a`.
+    alpha: f64,
+    /// `cos` of the arc from `a` to `b`.
+    cos_ab: f64,
+    area: f64,
+}
+
+impl SphericalTriangle {
+    /// The triangle of unit directions `a`, `b`, `c`; `None` when it has no solid angle to
+    /// speak of (below `1e-12` steradians: a triangle seen edge-on, or its corners nearly
+    /// in one direction).
+    pub fn new(a: DVec3, b: DVec3, c: DVec3) -> Option<SphericalTriangle> {
+        let det = a.dot(b.cross(c)).abs();
+        let (ab, bc, ca) = (a.dot(b), b.dot(c), c.dot(a));
+        // The solid angle by Van Oosterom and Strackee (IEEE Trans. Biomed. Eng. 1983):
+        // no cancellation for small triangles, unlike the angle sum less pi.
+        let area = 2.0 * det.atan2(1.0 + ab + bc + ca);
+        // The angle at `a` between the arcs to `b` and to `c`: the tangents there are
+        // `b - (a.b) a` and `c - (a.c) a`, whose dot product is `b.c - (a.b)(a.c)` and the
+        // length of whose cross product is `|a . (b x c)|`.
+        let alpha = det.atan2(bc - ab * ca);
+        let toward_c = (c - ca * a).normalize_or_zero();
+        (area > 1e-12 && area.is_finite() && toward_c != DVec3::ZERO).then_some(SphericalTriangle {
+            a,
+            b,
+            toward_c,
+            alpha,
+            cos_ab: ab,
+            area,
+        })
+    }
+
+    /// The solid angle, in steradians.
+    pub fn area(&self) -> f64 {
+        self.area
+    }
+
+    /// The unit direction of `(u, v)` in the unit square: `u` picks the sub-triangle
+    /// `(a, b, c')` of solid angle `u × area` (its corner `c'` on the arc from `a` to `c`),
+    /// `v` the point on the arc from `b` to `c'` that splits that sub-triangle's solid
+    /// angle in the ratio `v : 1 - v` (Arvo 1995, section 2).
+    pub fn sample(&self, u: f64, v: f64) -> DVec3 {
+        let (sin_alpha, cos_alpha) = self.alpha.sin_cos();
+        let (s, t) = (u * self.area - self.alpha).sin_cos();
+        let (p, q) = (t - cos_alpha, s + sin_alpha * self.cos_ab);
+        // cos of the arc from `a` to `c'`.
+        let cos_ac =
+            (((q * t - p * s) * cos_alpha - q) / ((q * s + p * t) * sin_alpha)).clamp(-1.0, 1.0);
+        let c = cos_ac * self.a + (1.0 - cos_ac * cos_ac).max(0.0).sqrt() * self.toward_c;
+        let z = 1.0 - v * (1.0 - c.dot(self.b));
+        let along = (c - c.dot(self.b) * self.b).normalize_or_zero();
+        z * self.b + (1.0 - z * z).max(0.0).sqrt() * along
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Triangles seen from the origin (corners, normal of the point): far, near, and with
+    /// the point close to an edge (a solid angle near 2 pi).
+    fn triangles() -> Vec<([DVec3; 3], DVec3)> {
+        let z = DVec3::Z;
+        vec![
+            (
+                [
+                    DVec3::new(-1.0, -1.0, 5.0),
+                    DVec3::new(2.0, 0.0, 5.0),
+                    DVec3::new(0.0, 1.5, 6.0),
+                ],
+                z,
+            ),
+            (
+                [
+                    DVec3::new(-1.0, -1.0, 0.5),
+                    DVec3::new(1.0, -1.0, 0.5),
+                    DVec3::new(0.0, 1.0, 0.5),
+                ],
+                z,
+            ),
+            (
+                [
+                    DVec3::new(-3.0, 1e-3, 1e-3),
+                    DVec3::new(3.0, 1e-3, 1e-3),
+                    DVec3::new(0.0, 4.0, 1e-3),
+                ],
+                DVec3::new(0.0, 0.6, 0.8),
+            ),
+            (
+                [
+                    DVec3::new(1e-4, -1.0, 0.0),
+                    DVec3::new(1e-4, 1.0, 0.0),
+                    DVec3::new(1e-4, 0.0, 2.0),
+                ],
+                DVec3::X,
+            ),
+        ]
+    }
+
+    /// Directions fall inside the spherical triangle, and they are uniform in its solid
+    /// angle: `Ω / π` times the mean cosine of 128 x 128 jittered directions is the point's
+    /// form factor to the triangle (Lambert's closed form), to the jittered rule's error.
+    #[test]
+    fn spherical_triangle_directions_are_uniform_in_its_solid_angle() {
+        let mut rng = Pcg32::keyed(7, 0, 0, 0);
+        let mut grid = Vec::new();
+        for (corners, n) in triangles() {
+            let [a, b, c] = corners.map(|p| p.normalize());
+            let tri = SphericalTriangle::new(a, b, c).expect("a proper triangle");
+            let det = a.dot(b.cross(c));
+            jittered(&mut rng, 128, &mut grid);
+            let mut sum = 0.0;
+            for &(u, v) in &grid {
+                let d = tri.sample(u, v);
+                assert!((d.length() - 1.0).abs() < 1e-9, "{d}");
+                for (p, q) in [(a, b), (b, c), (c, a)] {
+                    assert!(
+                        d.dot(p.cross(q)) * det.signum() > -1e-9,
+                        "{d} outside {corners:?}"
+                    );
+                }
+                sum += d.dot(n).max(0.0);
+            }
+            let estimate = tri.area() / std::f64::consts::PI * sum / grid.len() as f64;
+            let exact = crate::analytic::point_to_polygon(DVec3::ZERO, n, &corners);
+            assert!(
+                (estimate - exact).abs() < 2e-4 * exact.max(1e-3),
+                "{corners:?}: {estimate} against {exact}"
+            );
+        }
+    }
+
+    /// A triangle seen edge-on has no solid angle to sample.
+    #[test]
+    fn an_edge_on_triangle_has_no_spherical_triangle() {
+        let (a, b, c) = (DVec3::X, DVec3::Y, (DVec3::X + DVec3::Y).normalize());
+        assert!(SphericalTriangle::new(a, b, c).is_none());
+    }
 
     /// Mean, variance and lag-one correlation (the two halves of a word, and consecutive
     /// words) of samples that should be uniform on [0, 1): three checks at 5 standard
