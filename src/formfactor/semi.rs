@@ -649,8 +649,9 @@ impl SemiAnalytic {
                 }
                 if !free {
                     jittered(rng, self.vis_rays.max(1), &mut s.ys);
-                    // Directions drawn in proportion to the kernel, unless the receiver
-                    // lies nearly edge-on to the node's plane ([`SeenFrom`]).
+                    // Directions drawn in proportion to the kernel for a node near the
+                    // receiver ([`NEAR_REACH`]), unless the receiver lies nearly edge-on to
+                    // the node's plane ([`SeenFrom`]); points by area otherwise.
                     let seen_from = (xf.distance(centroid_r) < NEAR_REACH * reach)
                         .then(|| SeenFrom::new(xf, &cr[..kr]))
                         .flatten()
