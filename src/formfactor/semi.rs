@@ -159,6 +159,15 @@ fn corners(p: &PatchSet, i: usize) -> ([DVec3; 4], usize) {
     p.corner_points(i)
 }
 
+/// Patch `i`'s reach: its farthest corner's distance from its centroid.
+fn reach_of(p: &PatchSet, i: usize) -> f64 {
+    let (c, k) = corners(p, i);
+    c[..k]
+        .iter()
+        .map(|c| c.distance(p.centroid[i]))
+        .fold(0.0, f64::max)
+}
+
 /// Signed distances of the corners of `b` from the plane of `a`, as (min, max). It runs
 /// several times for each of the N² pairs, so the corners are read in place
 /// ([`PatchSet::corner_iter`]).
@@ -603,21 +612,13 @@ impl SemiAnalytic {
         let n_x = n_e.normalize();
         // The receiver's reach from its centroid, for [`NEAR_REACH`].
         let centroid_r = p.centroid[r];
-        let reach = cr[..kr]
-            .iter()
-            .map(|c| c.distance(centroid_r))
-            .fold(0.0, f64::max);
+        let reach = reach_of(p, r);
         // A near pair (the patches' spheres about their centroids through their farthest
         // corners overlap): its unoccluded integral exactly, so that the nodes estimate only
         // what the blocked rays hide. Nodes drawn over a patch that meets or nearly meets
         // its receiver sample an integrand that peaks at the contact, and the replicates
         // seldom see the peak.
-        let (ce, ke) = corners(p, e);
-        let reach_e = ce[..ke]
-            .iter()
-            .map(|c| c.distance(p.centroid[e]))
-            .fold(0.0, f64::max);
-        let near = p.centroid[e].distance(centroid_r) < reach_e + reach;
+        let near = p.centroid[e].distance(centroid_r) < reach_of(p, e) + reach;
         let exact = (!free && near).then(|| self.exact_pair(p, e, r, None));
         let (on_e, on_r) = (p.sampler(e), p.sampler(r));
         let w = p.area[e] / (m * m) as f64;
